@@ -1,0 +1,1 @@
+"""Benchmarks that need the editor window (see app/commands/bench.py)."""

@@ -1,0 +1,1 @@
+"""Subcommands of `repaint-nerf`, one module each (discovered by app/cli.py)."""

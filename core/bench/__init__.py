@@ -1,0 +1,1 @@
+"""Benchmarks that run without a window (see app/commands/bench.py)."""

@@ -1,0 +1,55 @@
+"""The one place that decides the torch device, dtypes and thread settings.
+
+Everything in `core` asks here instead of calling `torch.cuda.is_available()` itself, so a user can
+force a device with `REPAINT_NERF_DEVICE=cpu|cuda|cuda:1` and tests can pin the CPU.
+"""
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+
+import torch
+
+ENV_DEVICE = "REPAINT_NERF_DEVICE"
+
+
+@lru_cache(maxsize=None)
+def _resolve(name: str | None) -> torch.device:
+    name = name or os.environ.get(ENV_DEVICE) or ("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        from core.errors import UserError
+
+        raise UserError(f"device '{name}' was asked for but CUDA is not available",
+                        hint=f"unset {ENV_DEVICE} or set it to 'cpu'")
+    return dev
+
+
+def get_device(name: str | None = None) -> torch.device:
+    """The device to run on: `name`, else $REPAINT_NERF_DEVICE, else CUDA when present, else CPU."""
+    return _resolve(name)
+
+
+def is_cuda(device: torch.device | str | None = None) -> bool:
+    return torch.device(device or get_device()).type == "cuda"
+
+
+def autocast_dtype(device: torch.device | str | None = None) -> torch.dtype | None:
+    """Mixed-precision dtype for the device (fp16 on CUDA), or None where autocast does not pay (CPU)."""
+    return torch.float16 if is_cuda(device) else None
+
+
+def describe(device: torch.device | str | None = None) -> str:
+    """A human-readable device description for benchmark JSON and logs."""
+    dev = torch.device(device or get_device())
+    if dev.type == "cuda":
+        return f"cuda:{torch.cuda.get_device_name(dev)}"
+    import platform
+
+    return f"cpu:{platform.processor() or platform.machine()} x{torch.get_num_threads()} threads"
+
+
+def synchronize(device: torch.device | str | None = None) -> None:
+    """Wait for queued kernels (timing needs it on CUDA; a no-op on CPU)."""
+    if is_cuda(device):
+        torch.cuda.synchronize(torch.device(device or get_device()))

@@ -1,0 +1,1 @@
+"""Scene input: cameras in one convention, loaders, normalisation."""

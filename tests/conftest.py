@@ -1,0 +1,64 @@
+"""Shared fixtures: a virtual display for GUI tests and small generated scenes (never committed)."""
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("REPAINT_NERF_DEVICE", "cpu")
+ARTIFACTS = Path(__file__).parent / "artifacts"
+
+
+@pytest.fixture(scope="session")
+def artifacts_dir() -> Path:
+    """Where tests leave screenshots and plots for a person (or CI) to look at."""
+    ARTIFACTS.mkdir(exist_ok=True)
+    return ARTIFACTS
+
+
+@pytest.fixture(scope="session")
+def xvfb_display():
+    """A DISPLAY for real windows: the user's own if set, else an Xvfb started for the session."""
+    if os.environ.get("DISPLAY"):
+        yield os.environ["DISPLAY"]
+        return
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        pytest.fail("Xvfb is not installed: run `bash install.sh` (it installs the xvfb package)")
+    for num in range(99, 140):
+        if not Path(f"/tmp/.X{num}-lock").exists():
+            break
+    proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if Path(f"/tmp/.X11-unix/X{num}").exists():
+            break
+        time.sleep(0.05)
+    os.environ["DISPLAY"] = f":{num}"
+    try:
+        yield f":{num}"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+        os.environ.pop("DISPLAY", None)
+
+
+@pytest.fixture(scope="session")
+def scene_factory(tmp_path_factory):
+    """make(preset, size, views, seed) -> path of a generated synthetic scene, cached per session."""
+    cache: dict = {}
+
+    def make(preset: str = "demo", size: int = 32, views: int = 12, seed: int = 0, test_views: int = 4) -> Path:
+        key = (preset, size, views, seed, test_views)
+        if key not in cache:
+            from core.synth.generate import make_scene
+
+            out = tmp_path_factory.mktemp(f"scene_{preset}_{size}")
+            cache[key] = make_scene(preset, out, size=size, views=views, seed=seed, test_views=test_views)
+        return cache[key]
+
+    return make
