@@ -1,0 +1,43 @@
+"""The viewport's dynamic-resolution controller follows instant-ngp's rule (sqrt ratio, clamp, 20% band)."""
+import math
+
+from app.resolution import DynamicResolution
+
+
+def test_scales_by_sqrt_of_time_ratio():
+    c = DynamicResolution(target_ms=50.0, scale=0.5)
+    assert math.isclose(c.update(200.0), 0.5 * math.sqrt(50 / 200))  # 4x too slow -> half the scale
+    c = DynamicResolution(target_ms=50.0, scale=0.25)
+    assert math.isclose(c.update(12.5), 0.25 * 2.0)  # 4x too fast -> double
+
+
+def test_no_change_inside_the_band_and_change_just_outside():
+    c = DynamicResolution(target_ms=50.0, scale=0.5)
+    for ms in (40.0, 45.0, 50.0, 55.0, 60.0):
+        assert c.update(ms) == 0.5
+    assert c.update(61.0) < 0.5
+    c = DynamicResolution(target_ms=50.0, scale=0.5)
+    assert c.update(39.0) > 0.5
+
+
+def test_clamped_to_sixteenth_and_one():
+    c = DynamicResolution(target_ms=10.0, scale=0.1)
+    for _ in range(10):
+        c.update(1e6)
+    assert c.scale == 1.0 / 16.0
+    for _ in range(10):
+        c.update(1e-3)
+    assert c.scale == 1.0
+
+
+def test_uses_the_scale_the_frame_was_rendered_at_and_ignores_bad_times():
+    c = DynamicResolution(target_ms=50.0, scale=0.5)
+    assert math.isclose(c.update(200.0, at_scale=1.0), 0.5)
+    assert c.update(float("nan")) == 0.5 and c.update(0.0) == 0.5
+
+
+def test_converges_on_a_quadratic_cost_model():
+    c = DynamicResolution(target_ms=40.0, scale=1.0)
+    for _ in range(6):
+        c.update(160.0 * c.scale ** 2)  # render cost ~ pixels ~ scale^2; full res costs 160 ms
+    assert abs(160.0 * c.scale ** 2 - 40.0) <= 0.2 * 40.0
