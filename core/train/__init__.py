@@ -1,0 +1,1 @@
+"""Stage-1 training (paper Eq. s1): trainer, losses, schedule, checkpoints, metrics, progress bar."""

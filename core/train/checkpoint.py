@@ -1,0 +1,99 @@
+"""Checkpoint files: tensors in safetensors plus a JSON header (format version, configs, step).
+
+Holds the field, the occupancy grid, the optimiser state and the RNG state, so a resumed run continues
+where it stopped. Loading reads safetensors only (no pickle); a corrupt, truncated or other-version
+file is a WorkspaceError that names the file.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from core.errors import WorkspaceError
+from core.workspace import atomic
+
+CHECKPOINT_FORMAT = 1
+HEADER_KEY = "repaint_nerf"
+
+
+@dataclass
+class Checkpoint:
+    """Flat tensors (names like 'field.x', 'grid.x', 'optim.3.exp_avg') and a JSON-able header."""
+
+    tensors: dict[str, torch.Tensor] = field(default_factory=dict)
+    header: dict[str, Any] = field(default_factory=dict)
+
+    def save(self, path: str | Path) -> None:
+        """Write atomically to `path` (the previous file stays intact if anything fails)."""
+        header = {"format": CHECKPOINT_FORMAT, **self.header}
+        atomic.write_safetensors(path, self.tensors, {HEADER_KEY: json.dumps(header)})
+
+    @staticmethod
+    def load(path: str | Path, device: torch.device | str = "cpu") -> "Checkpoint":
+        """Read a checkpoint; raises WorkspaceError for a missing, corrupt or mismatched-version file."""
+        from safetensors import safe_open
+
+        path = Path(path)
+        hint = "the file is damaged or from another program version: delete it and train again"
+        if not path.is_file():
+            raise WorkspaceError("checkpoint not found", path, hint="train first (repaint-nerf train)")
+        try:
+            tensors = {}
+            with safe_open(str(path), framework="pt", device=str(device)) as f:
+                meta = f.metadata() or {}
+                for k in f.keys():
+                    tensors[k] = f.get_tensor(k)
+        except Exception as exc:  # safetensors raises its own error types for truncated/garbled files
+            raise WorkspaceError(f"cannot read this checkpoint ({exc.__class__.__name__}: {exc})", path,
+                                 hint=hint) from exc
+        try:
+            header = json.loads(meta[HEADER_KEY])
+        except (KeyError, json.JSONDecodeError) as exc:
+            raise WorkspaceError("this safetensors file has no repaint-nerf header", path, hint=hint) from exc
+        fmt = header.get("format")
+        if fmt != CHECKPOINT_FORMAT:
+            raise WorkspaceError(f"checkpoint format version {fmt!r}; this program reads version "
+                                 f"{CHECKPOINT_FORMAT}", path, hint=hint)
+        return Checkpoint(tensors, header)
+
+    def section(self, prefix: str) -> dict[str, torch.Tensor]:
+        """The tensors under 'prefix.' with the prefix removed."""
+        p = prefix + "."
+        return {k[len(p):]: v for k, v in self.tensors.items() if k.startswith(p)}
+
+
+def split_state(state: dict) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Split a state_dict into its tensors and its JSON-able rest (ints, floats, lists)."""
+    tensors = {k: v for k, v in state.items() if isinstance(v, torch.Tensor)}
+    rest = {k: v for k, v in state.items() if not isinstance(v, torch.Tensor)}
+    json.dumps(rest)  # fail here, not on load, if a component keeps non-JSON state
+    return tensors, rest
+
+
+def optimizer_state(opt: torch.optim.Optimizer) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Adam-style optimiser state as flat tensors 'i.key' plus JSON param groups."""
+    sd = opt.state_dict()
+    tensors = {}
+    scalars: dict[str, dict] = {}
+    for pid, st in sd["state"].items():
+        for key, val in st.items():
+            if isinstance(val, torch.Tensor):
+                tensors[f"{pid}.{key}"] = val
+            else:
+                scalars.setdefault(str(pid), {})[key] = val
+    return tensors, {"param_groups": sd["param_groups"], "scalars": scalars}
+
+
+def load_optimizer_state(opt: torch.optim.Optimizer, tensors: dict[str, torch.Tensor], meta: dict) -> None:
+    """Inverse of `optimizer_state` (tensors moved to the parameters' device)."""
+    state: dict[int, dict] = {}
+    for name, val in tensors.items():
+        pid, key = name.split(".", 1)
+        state.setdefault(int(pid), {})[key] = val
+    for pid, d in meta.get("scalars", {}).items():
+        state.setdefault(int(pid), {}).update(d)
+    opt.load_state_dict({"state": state, "param_groups": meta["param_groups"]})

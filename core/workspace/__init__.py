@@ -1,0 +1,1 @@
+"""What is saved per scene: settings, checkpoints, teacher caches, selections, masks, versions (atomic writes)."""

@@ -1,0 +1,243 @@
+"""The on-disk workspace of one scene: settings, checkpoints, teacher caches, selections, masks and
+a linear edit history of versions with undo/redo (the first reconstruction is never overwritten).
+
+Layout (format version `FORMAT_VERSION`)::
+
+    WS/workspace.json        {"format": 1, "program": "repaint-nerf", "created": ...}
+    WS/settings.json         user settings (scene path, downscale, model paths, ...)
+    WS/checkpoints/          training checkpoints (overwritten atomically while training)
+    WS/teachers/ selections/ masks/
+    WS/versions/index.json   {"versions": {id: info}, "history": [ids], "current": i}
+    WS/versions/<id>.safetensors
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from core.errors import WorkspaceError
+from core.workspace import atomic
+
+FORMAT_VERSION = 1
+MARKER = "workspace.json"
+SUBDIRS = ("checkpoints", "teachers", "selections", "masks", "versions")
+
+
+class SavableState(Protocol):
+    """Anything that can write itself to a file (e.g. `core.train.checkpoint.Checkpoint`)."""
+
+    def save(self, path: Path) -> None: ...
+
+
+@dataclass
+class VersionInfo:
+    """One saved state of the scene's field: the reconstruction or an edit."""
+
+    id: str
+    name: str
+    file: str  # relative to the workspace root
+    created: float
+    parent: str | None
+    kind: str = "stage1"  # "stage1" (a reconstruction) or "edit"
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WorkspaceError(f"cannot read this file ({exc.__class__.__name__}: {exc})", path,
+                             hint="the file is corrupt; restore it or delete the workspace and train again")
+
+
+class Workspace:
+    """A workspace folder. Use `Workspace.open` (must exist) or `Workspace.create` / `open_or_create`."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+
+    # -- opening -------------------------------------------------------------------------------
+    @classmethod
+    def create(cls, root: str | Path, settings: dict | None = None) -> "Workspace":
+        """Create a new workspace in an empty or missing folder (an existing workspace is opened instead)."""
+        root = Path(root)
+        if root.exists() and not root.is_dir():
+            raise WorkspaceError("this is a file, not a workspace folder", root,
+                                 hint="pass a folder path for --workspace")
+        if (root / MARKER).exists():
+            ws = cls.open(root)
+            if settings:
+                ws.update_settings(**settings)
+            return ws
+        if root.exists() and any(root.iterdir()):
+            raise WorkspaceError("the folder is not empty and is not a repaint-nerf workspace", root,
+                                 hint="choose a new or empty folder for the workspace")
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            for sub in SUBDIRS:
+                (root / sub).mkdir(exist_ok=True)
+            atomic.write_json(root / "settings.json", dict(settings or {}))
+            atomic.write_json(root / MARKER, {"format": FORMAT_VERSION, "program": "repaint-nerf",
+                                              "created": time.time()})
+        except OSError as exc:
+            raise WorkspaceError(f"cannot create the workspace ({exc.strerror or exc})", root,
+                                 hint="choose a folder you can write to") from exc
+        return cls(root)
+
+    @classmethod
+    def open(cls, root: str | Path) -> "Workspace":
+        """Open an existing workspace; a missing folder, a non-workspace or another format version is a WorkspaceError."""
+        root = Path(root)
+        if not root.is_dir():
+            raise WorkspaceError("no workspace folder here", root,
+                                 hint="train first: repaint-nerf train SCENE --workspace " + str(root))
+        marker = root / MARKER
+        if not marker.exists():
+            raise WorkspaceError("this folder is not a repaint-nerf workspace (no workspace.json)", root,
+                                 hint="pass the folder given to `repaint-nerf train --workspace`")
+        info = _read_json(marker)
+        fmt = info.get("format") if isinstance(info, dict) else None
+        if fmt != FORMAT_VERSION:
+            raise WorkspaceError(f"workspace format version {fmt!r}; this program reads version {FORMAT_VERSION}",
+                                 marker, hint="use the repaint-nerf version that wrote it, or train a new workspace")
+        for sub in SUBDIRS:
+            (root / sub).mkdir(exist_ok=True)
+        return cls(root)
+
+    @classmethod
+    def open_or_create(cls, root: str | Path, settings: dict | None = None) -> "Workspace":
+        """Open the workspace at `root`, creating it if the folder is missing or empty."""
+        return cls.create(root, settings)
+
+    # -- folders and settings -----------------------------------------------------------------
+    def path(self, *parts: str) -> Path:
+        return self.root.joinpath(*parts)
+
+    @property
+    def checkpoints_dir(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def teachers_dir(self) -> Path:
+        return self.root / "teachers"
+
+    @property
+    def selections_dir(self) -> Path:
+        return self.root / "selections"
+
+    @property
+    def masks_dir(self) -> Path:
+        return self.root / "masks"
+
+    @property
+    def versions_dir(self) -> Path:
+        return self.root / "versions"
+
+    @property
+    def settings(self) -> dict:
+        """The saved settings (a fresh dict; change them with `update_settings`)."""
+        path = self.root / "settings.json"
+        if not path.exists():
+            return {}
+        data = _read_json(path)
+        if not isinstance(data, dict):
+            raise WorkspaceError("settings.json is not a JSON object", path, hint="fix or delete the file")
+        return data
+
+    def update_settings(self, **values: Any) -> dict:
+        """Merge `values` into settings.json (atomically) and return the result."""
+        data = self.settings
+        data.update(values)
+        atomic.write_json(self.root / "settings.json", data)
+        return data
+
+    # -- versions ------------------------------------------------------------------------------
+    def _index_path(self) -> Path:
+        return self.versions_dir / "index.json"
+
+    def _index(self) -> dict:
+        path = self._index_path()
+        if not path.exists():
+            return {"versions": {}, "history": [], "current": -1}
+        data = _read_json(path)
+        if not isinstance(data, dict) or not {"versions", "history", "current"} <= set(data):
+            raise WorkspaceError("the version index is malformed", path,
+                                 hint="restore versions/index.json or delete the versions folder")
+        return data
+
+    def _write_index(self, data: dict) -> None:
+        atomic.write_json(self._index_path(), data)
+
+    @property
+    def versions(self) -> list[VersionInfo]:
+        """Versions on the undo/redo line, oldest first (the current one is `current_version`)."""
+        idx = self._index()
+        return [VersionInfo(**idx["versions"][v]) for v in idx["history"]]
+
+    @property
+    def current_version(self) -> VersionInfo | None:
+        idx = self._index()
+        if idx["current"] < 0:
+            return None
+        return VersionInfo(**idx["versions"][idx["history"][idx["current"]]])
+
+    @property
+    def original_version(self) -> VersionInfo | None:
+        """The first reconstruction saved in this workspace (never overwritten by edits)."""
+        idx = self._index()
+        for info in sorted(idx["versions"].values(), key=lambda v: v["id"]):
+            if info.get("kind") == "stage1":
+                return VersionInfo(**info)
+        return None
+
+    def version_path(self, info: VersionInfo) -> Path:
+        return self.root / info.file
+
+    def save_version(self, name: str, state: SavableState, kind: str = "edit") -> VersionInfo:
+        """Write `state` as a new version after the current one and make it current.
+
+        Versions after the current one (undone edits) leave the redo line; their files stay on disk.
+        """
+        idx = self._index()
+        n = 1 + max((int(v[1:]) for v in idx["versions"]), default=0)
+        vid = f"v{n:04d}"
+        rel = f"versions/{vid}.safetensors"
+        state.save(self.root / rel)
+        parent = idx["history"][idx["current"]] if idx["current"] >= 0 else None
+        info = VersionInfo(id=vid, name=name, file=rel, created=time.time(), parent=parent, kind=kind)
+        idx["versions"][vid] = asdict(info)
+        idx["history"] = idx["history"][: idx["current"] + 1] + [vid]
+        idx["current"] = len(idx["history"]) - 1
+        self._write_index(idx)
+        return info
+
+    @property
+    def can_undo(self) -> bool:
+        return self._index()["current"] > 0
+
+    @property
+    def can_redo(self) -> bool:
+        idx = self._index()
+        return idx["current"] < len(idx["history"]) - 1
+
+    def undo(self) -> VersionInfo | None:
+        """Step back to the previous version and return it; None (and no change) when there is none."""
+        idx = self._index()
+        if idx["current"] <= 0:
+            return None
+        idx["current"] -= 1
+        self._write_index(idx)
+        return self.current_version
+
+    def redo(self) -> VersionInfo | None:
+        """Step forward to the next (undone) version and return it; None when there is none."""
+        idx = self._index()
+        if idx["current"] >= len(idx["history"]) - 1:
+            return None
+        idx["current"] += 1
+        self._write_index(idx)
+        return self.current_version
