@@ -1,0 +1,104 @@
+"""The editor's OS window: glfw + a moderngl context + imgui-bundle's glfw/OpenGL3 backends.
+
+One `Window` per process. Each frame: `begin_frame()`, imgui widgets, `end_frame()`. Tests and the
+viewport benchmark inject imgui input events through `inject(...)`; they are queued after the glfw
+backend has read the real devices and before `imgui.new_frame()`, so they win over the real cursor.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import imgui_bundle  # noqa: F401  (must come before glfw: it points pyGLFW at its bundled libglfw)
+from imgui_bundle import imgui, implot
+import glfw  # noqa: E402
+import moderngl  # noqa: E402
+import numpy as np  # noqa: E402
+
+from core.errors import UserError  # noqa: E402
+
+
+class Window:
+    """A glfw window with GL 3.3 core, moderngl and imgui (+ implot) set up."""
+
+    def __init__(self, title: str = "RePaint-NeRF", width: int = 1280, height: int = 800, visible: bool = True):
+        if not glfw.init():
+            raise UserError("cannot open a window: no display was found",
+                            hint="run under a desktop session, or set DISPLAY (e.g. start `Xvfb :99` and export DISPLAY=:99)")
+        glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 3)
+        glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 3)
+        glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+        glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
+        glfw.window_hint(glfw.VISIBLE, visible)
+        self.handle = glfw.create_window(width, height, title, None, None)
+        if not self.handle:
+            glfw.terminate()
+            raise UserError("cannot create an OpenGL 3.3 window", hint="update the graphics driver (or Mesa)")
+        glfw.make_context_current(self.handle)
+        glfw.swap_interval(0 if os.environ.get("REPAINT_NERF_NO_VSYNC") else 1)
+        self.ctx = moderngl.create_context()
+        imgui.create_context()
+        implot.create_context()
+        io = imgui.get_io()
+        io.config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value
+        io.set_ini_filename("")  # no imgui.ini next to the user's data
+        imgui.backends.glfw_init_for_opengl(_window_address(self.handle), True)
+        imgui.backends.opengl3_init("#version 330")
+        self._injectors: list[Callable[[imgui.IO], None]] = []
+        self._closed = False
+
+    def inject(self, fn: Callable[["imgui.IO"], None]) -> None:
+        """Queue a function that adds imgui input events for the next frame (tests, scripted benchmarks)."""
+        self._injectors.append(fn)
+
+    def should_close(self) -> bool:
+        return self._closed or glfw.window_should_close(self.handle)
+
+    def request_close(self) -> None:
+        glfw.set_window_should_close(self.handle, True)
+
+    def framebuffer_size(self) -> tuple[int, int]:
+        return glfw.get_framebuffer_size(self.handle)
+
+    def begin_frame(self) -> None:
+        glfw.poll_events()
+        imgui.backends.opengl3_new_frame()
+        imgui.backends.glfw_new_frame()
+        io = imgui.get_io()
+        injectors, self._injectors = self._injectors, []
+        for fn in injectors:
+            fn(io)
+        imgui.new_frame()
+
+    def end_frame(self, capture: bool = False) -> np.ndarray | None:
+        """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3)."""
+        imgui.render()
+        w, h = self.framebuffer_size()
+        self.ctx.screen.use()
+        self.ctx.viewport = (0, 0, w, h)
+        self.ctx.clear(0.1, 0.1, 0.12, 1.0)
+        imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
+        shot = self._read_screen(w, h) if capture else None
+        glfw.swap_buffers(self.handle)
+        return shot
+
+    def _read_screen(self, w: int, h: int) -> np.ndarray:
+        data = self.ctx.screen.read(viewport=(0, 0, w, h), components=3, alignment=1)
+        return np.frombuffer(data, dtype=np.uint8).reshape(h, w, 3)[::-1].copy()
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        imgui.backends.opengl3_shutdown()
+        imgui.backends.glfw_shutdown()
+        implot.destroy_context()
+        imgui.destroy_context()
+        glfw.destroy_window(self.handle)
+        glfw.terminate()
+
+
+def _window_address(handle) -> int:
+    import ctypes
+
+    return ctypes.cast(handle, ctypes.c_void_p).value

@@ -1,0 +1,228 @@
+"""The worker thread: the only thread that touches the engine (model, optimiser, renderer).
+
+Its loop runs queued commands, then serves the newest render request (progressive: the dynamic scale
+while the camera moves, then refinement up to full resolution while it rests; a newer request cancels
+stale work through the renderer's cancel callback), then trains for a time budget, then publishes.
+Everything crosses threads through queues (plus one lock-guarded "latest request" slot).
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from app.feature_view import FeatureProjector
+from app.resolution import DynamicResolution
+from core.errors import UserError
+
+
+@dataclass
+class RenderRequest:
+    """Render the view `cameras` (one camera at full viewport resolution); `key` identifies the view."""
+
+    cameras: Any
+    key: tuple
+    outputs: tuple = ("rgb", "depth")
+    time: float = field(default_factory=time.perf_counter)
+    serial: int = 0
+
+
+@dataclass
+class Frame:
+    """A finished render: numpy arrays at `scale` of the requested resolution."""
+
+    key: tuple
+    scale: float
+    data: dict
+    render_ms: float
+    request_time: float
+    serial: int
+    final: bool  # True when this is full resolution
+
+
+@dataclass
+class Reply:
+    """The outcome of a command: its value, or an error message for the UI."""
+
+    name: str
+    value: Any = None
+    error: str | None = None
+    tag: Any = None
+
+
+@dataclass
+class Status:
+    """Published after training steps: whatever the engine reports (step, loss, psnr, phase...)."""
+
+    info: dict
+
+
+@dataclass
+class Crashed:
+    """An unexpected exception in the worker: the UI shows it and stays usable."""
+
+    where: str
+    text: str
+
+
+class Worker:
+    """Owns `engine` on a background thread. The UI calls `request_render`, `call`, `poll`."""
+
+    def __init__(self, engine: Any, target_ms: float = 60.0, train_budget_s: float = 0.1,
+                 rest_s: float = 0.15, preview_interval_s: float = 1.0):
+        self.engine = engine
+        self.controller = DynamicResolution(target_ms=target_ms, scale=0.25)
+        self.train_budget_s = train_budget_s
+        self.rest_s = rest_s
+        self.preview_interval_s = preview_interval_s
+        self.training = True
+        self.commands: queue.Queue = queue.Queue()
+        self.results: queue.Queue = queue.Queue()
+        self._lock = threading.Lock()
+        self._latest: RenderRequest | None = None
+        self._serial = 0
+        self._served: tuple[int, float] = (-1, 0.0)  # (serial, best scale) already delivered
+        self._last_preview = 0.0
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self.projector = FeatureProjector()
+        self.thread = threading.Thread(target=self._run, name="repaint-nerf-worker", daemon=True)
+
+    # ---- UI side
+    def start(self) -> "Worker":
+        self.thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        self._wake.set()
+        self.thread.join(timeout)
+
+    def alive(self) -> bool:
+        return self.thread.is_alive()
+
+    def request_render(self, cameras: Any, key: tuple, outputs: tuple = ("rgb", "depth")) -> None:
+        """Replace any pending request with this one (newest first; older ones are dropped or cancelled)."""
+        with self._lock:
+            self._serial += 1
+            self._latest = RenderRequest(cameras, key, outputs, serial=self._serial)
+        self._wake.set()
+
+    def refresh(self) -> None:
+        """Re-render the current view at full quality (after the model or the selection changed)."""
+        with self._lock:
+            self._served = (-1, 0.0)
+        self._wake.set()
+
+    def call(self, name: str, *args: Any, tag: Any = None, **kwargs: Any) -> None:
+        """Run `engine.name(*args, **kwargs)` on the worker; a `Reply` comes back through `poll`."""
+        self.commands.put((name, args, kwargs, tag))
+        self._wake.set()
+
+    def set_training(self, on: bool) -> None:
+        self.training = bool(on)
+        self._wake.set()
+
+    def poll(self) -> list:
+        """All messages published since the last poll (Frame, Reply, Status, Crashed)."""
+        out = []
+        while True:
+            try:
+                out.append(self.results.get_nowait())
+            except queue.Empty:
+                return out
+
+    # ---- worker side
+    def _stale(self, serial: int) -> Callable[[], bool]:
+        return lambda: self._stop.is_set() or self._latest is None or self._latest.serial != serial
+
+    def _run_commands(self) -> None:
+        while True:
+            try:
+                name, args, kwargs, tag = self.commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                value = getattr(self.engine, name)(*args, **kwargs)
+                self.results.put(Reply(name, value, None, tag))
+            except UserError as exc:
+                self.results.put(Reply(name, None, str(exc), tag))
+            except Exception:  # a bug: report it, keep the worker alive
+                self.results.put(Reply(name, None, traceback.format_exc(limit=8), tag))
+                self.results.put(Crashed(f"command {name}", traceback.format_exc()))
+
+    def _next_scale(self, req: RenderRequest) -> float | None:
+        """Scale to render `req` at now, or None when it has been delivered at full quality."""
+        served_serial, served_scale = self._served
+        resting = (time.perf_counter() - req.time) >= self.rest_s
+        if served_serial != req.serial:
+            return self.controller.scale
+        if served_scale >= 1.0 or not resting:
+            return None  # done, or the camera still moves: refine once it rests
+        return min(1.0, served_scale * 2.0)
+
+    def _serve_render(self) -> bool:
+        with self._lock:
+            req = self._latest
+        if req is None:
+            return False
+        scale = self._next_scale(req)
+        if scale is None:
+            return False
+        t0 = time.perf_counter()
+        self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
+        data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=self._stale(req.serial))
+        ms = (time.perf_counter() - t0) * 1000.0
+        if data is None:  # cancelled by a newer request
+            self._served = (-1, 0.0)
+            return True
+        if data.get("feature") is not None and "feature" in req.outputs:
+            data["feature_pca"] = self.projector(data["feature"])
+        data.pop("feature", None)  # large; the UI only draws the projection
+        if scale == self.controller.scale:
+            self.controller.update(ms, at_scale=scale)
+        self._served = (req.serial, scale)
+        self.results.put(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
+        return True
+
+    def _camera_moving(self) -> bool:
+        with self._lock:
+            req = self._latest
+        return req is not None and (time.perf_counter() - req.time) < self.rest_s
+
+    def _train(self) -> bool:
+        if not self.training or self._camera_moving() or not getattr(self.engine, "can_train", lambda: False)():
+            return False
+        info = self.engine.train_for(self.train_budget_s)
+        if info is not None:
+            self.results.put(Status(dict(info)))
+        now = time.perf_counter()
+        if now - self._last_preview >= self.preview_interval_s:
+            self._last_preview = now
+            with self._lock:
+                self._served = (-1, 0.0)  # show the model as it trains: re-render the view progressively
+        return True
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self._wake.clear()
+            busy = False
+            for where, step in (("command", self._run_commands), ("render", self._serve_render),
+                                ("training", self._train)):
+                try:
+                    busy = bool(step()) or busy
+                except UserError as exc:
+                    self.training = False
+                    self.results.put(Crashed(where, str(exc)))
+                except Exception:
+                    self.training = False  # do not repeat a failing step every loop
+                    self.results.put(Crashed(where, traceback.format_exc()))
+                if where == "render" and busy:
+                    break  # newest render first: look for commands and newer requests before training
+            if not busy:
+                self._wake.wait(0.02)
