@@ -1,0 +1,160 @@
+"""Compute-once feature cache: teacher features for every training image, PCA-compressed, fp16,
+one safetensors file per image in a workspace folder.
+
+Layout: `<folder>/<teacher name>-<config hash>/basis-<fit id>.safetensors` holds the PCA basis fitted
+on a subsample of images; `<folder>/<teacher key>/<fit id>/<image hash>.safetensors` holds each
+image's codes. Changing the teacher's config, the codec settings or the image content gives new
+keys, so a stale file is never read. Writes are atomic (core.workspace.atomic).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.numpy import load_file, save
+
+from core.errors import WorkspaceError
+from core.teachers.base import FeatureTeacher, check_image
+from core.teachers.codec import PCACodec, sample_codes
+from core.workspace.atomic import write_bytes
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class FeatureStore:
+    """Compressed teacher features of a list of images, ready to serve training targets."""
+
+    codec: PCACodec
+    codes: list[torch.Tensor]          # per image (h, w, K) float16
+    sizes: list[tuple[int, int]]       # per image full (H, W)
+    files: list[Path]
+
+    @property
+    def dims(self) -> int:
+        return self.codec.dims
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def gather(self, image: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """K-dim feature targets (R, K) float32 for rays at integer pixels (u, v) of images `image`."""
+        image = torch.as_tensor(image).long().cpu()
+        u, v = torch.as_tensor(u).cpu(), torch.as_tensor(v).cpu()
+        out = torch.empty((image.shape[0], self.dims), dtype=torch.float32)
+        for i in torch.unique(image).tolist():
+            sel = image == i
+            out[sel] = sample_codes(self.codes[i], self.sizes[i], u[sel], v[sel])
+        return out
+
+    def full(self, i: int) -> torch.Tensor:
+        """Image i's codes upsampled to its full (H, W, K) resolution (float32)."""
+        h, w = self.sizes[i]
+        vv, uu = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        return sample_codes(self.codes[i], (h, w), uu.reshape(-1), vv.reshape(-1)).reshape(h, w, self.dims)
+
+    def mb_per_image(self) -> float:
+        """Mean size of the per-image cache files in MB (10^6 bytes)."""
+        sizes = [f.stat().st_size for f in self.files if f.exists()]
+        return float(np.mean(sizes)) / 1e6 if sizes else 0.0
+
+
+def image_hash(image: np.ndarray) -> str:
+    """Content hash of an image (shape and bytes): the cache key of its features."""
+    img = np.ascontiguousarray(np.asarray(image))
+    h = hashlib.sha1(f"{img.shape}|{img.dtype}".encode())
+    h.update(img.tobytes())
+    return h.hexdigest()[:20]
+
+
+def teacher_key(teacher: FeatureTeacher) -> str:
+    """Folder name for a teacher: its name plus a hash of its config."""
+    cfg = json.dumps(teacher.config(), sort_keys=True, default=str)
+    safe = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in teacher.name)[:40]
+    return f"{safe}-{hashlib.sha1(cfg.encode()).hexdigest()[:12]}"
+
+
+def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, folder: str | Path,
+                        dims: int = 32, scale: float = 0.5, fit_images: int = 16,
+                        samples_per_image: int = 8192, seed: int = 0,
+                        progress: Callable[[int, int], None] | None = None) -> FeatureStore:
+    """Features of every image, computed once and cached under `folder`.
+
+    The PCA basis is fitted on pixels subsampled from up to `fit_images` evenly spaced images (one
+    teacher pass each), then every image is encoded to `dims` fp16 codes at `scale` x its resolution.
+    A second call with the same images and settings only reads files.
+    """
+    if not images:
+        raise WorkspaceError("no training images to compute teacher features for", folder)
+    folder = Path(folder) / teacher_key(teacher)
+    hashes = [image_hash(check_image(im)) for im in images]
+    n = len(images)
+    fit_idx = sorted(set(np.linspace(0, n - 1, min(n, max(1, fit_images))).round().astype(int).tolist()))
+    fit_id = hashlib.sha1(json.dumps({"v": FORMAT_VERSION, "dims": dims, "scale": scale, "seed": seed,
+                                      "spi": samples_per_image, "fit": [hashes[i] for i in fit_idx]}
+                                     ).encode()).hexdigest()[:12]
+    basis_file = folder / f"basis-{fit_id}.safetensors"
+    code_dir = folder / fit_id
+    files = [code_dir / f"{h}.safetensors" for h in hashes]
+    computed: dict[int, np.ndarray] = {}
+    done = 0
+    total = n + (0 if basis_file.exists() else len(fit_idx))
+
+    def tick():
+        nonlocal done
+        done += 1
+        if progress:
+            progress(done, total)
+
+    codec = _load_codec(basis_file)
+    if codec is None:
+        rng = np.random.default_rng(seed)
+        samples = []
+        for i in fit_idx:
+            feats = teacher(check_image(images[i]))
+            flat = feats.reshape(-1, feats.shape[-1])
+            pick = rng.choice(flat.shape[0], size=min(samples_per_image, flat.shape[0]), replace=False)
+            samples.append(flat[pick])
+            if not files[i].exists():
+                computed[i] = feats  # kept only until encoded below (fit images are few)
+            tick()
+        codec = PCACodec.fit(np.concatenate(samples, 0), k=dims, seed=seed)
+        write_bytes(basis_file, save(codec.to_arrays(), metadata={"version": str(FORMAT_VERSION),
+                                                                  "teacher": teacher.name}))
+    codes, sizes = [], []
+    for i, (im, f) in enumerate(zip(images, files)):
+        rgb = check_image(im)
+        c = _load_codes(f)
+        if c is None:
+            feats = computed.pop(i) if i in computed else teacher(rgb)
+            c = codec.encode(feats, scale=scale)
+            write_bytes(f, save({"codes": c}, metadata={"version": str(FORMAT_VERSION),
+                                                        "height": str(rgb.shape[0]), "width": str(rgb.shape[1])}))
+        tick()
+        codes.append(torch.from_numpy(np.ascontiguousarray(c)))
+        sizes.append((int(rgb.shape[0]), int(rgb.shape[1])))
+    return FeatureStore(codec, codes, sizes, files)
+
+
+def _load_codec(path: Path) -> PCACodec | None:
+    if not path.exists():
+        return None
+    try:
+        return PCACodec.from_arrays(load_file(str(path)))
+    except (SafetensorError, KeyError, OSError):
+        return None  # a damaged cache file is recomputed, not fatal
+
+
+def _load_codes(path: Path) -> np.ndarray | None:
+    if not path.exists():
+        return None
+    try:
+        return load_file(str(path))["codes"]
+    except (SafetensorError, KeyError, OSError):
+        return None
