@@ -1,0 +1,172 @@
+"""The one Stable Diffusion loader: a local diffusers folder or a single-file checkpoint, never a hub.
+
+Holds the frozen parts score distillation needs (UNet, VAE, text encoder, tokenizer, a DDIM schedule)
+and the three operations it performs with them: encode a prompt, encode an image with gradient,
+predict noise. fp16 on CUDA with attention/VAE slicing and optional UNet offload; fp32 on CPU.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from core.device import get_device, is_cuda
+from core.errors import ModelNotFoundError
+from core.models.paths import how_to_set
+
+COMPONENTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
+SINGLE_FILE_SUFFIXES = (".safetensors", ".ckpt")
+
+
+@dataclass
+class StableDiffusion:
+    """Frozen Stable Diffusion parts on one device, plus the schedule's alpha_bar table (fp32, on device)."""
+
+    unet: torch.nn.Module
+    vae: torch.nn.Module
+    text_encoder: torch.nn.Module
+    tokenizer: object
+    scheduler: object
+    device: torch.device
+    dtype: torch.dtype
+    offload_unet: bool = False
+    path: Path | None = None
+    alphas_cumprod: Tensor = field(init=False)
+
+    def __post_init__(self) -> None:
+        for m in (self.unet, self.vae, self.text_encoder):
+            m.eval()
+            m.requires_grad_(False)
+        self.alphas_cumprod = self.scheduler.alphas_cumprod.to(self.device, torch.float32)
+
+    @property
+    def vae_scale_factor(self) -> int:
+        """Pixels per latent cell: 2^(number of VAE down blocks - 1), 8 for SD."""
+        return 2 ** (len(self.vae.config.block_out_channels) - 1)
+
+    @property
+    def resolution(self) -> int:
+        """Image side the UNet was trained for: sample_size x VAE factor (512 for SD 1.5 / 2.0-base)."""
+        return int(self.unet.config.sample_size) * self.vae_scale_factor
+
+    @property
+    def latent_scale(self) -> float:
+        return float(getattr(self.vae.config, "scaling_factor", 0.18215))
+
+    @property
+    def num_train_timesteps(self) -> int:
+        return int(self.scheduler.config.num_train_timesteps)
+
+    @torch.no_grad()
+    def encode_text(self, prompts: list[str]) -> Tensor:
+        """Text-encoder hidden states (B, L, D) for the prompts, in the UNet's dtype on the device."""
+        tok = self.tokenizer(prompts, padding="max_length", max_length=self.tokenizer.model_max_length,
+                             truncation=True, return_tensors="pt")
+        te_device = next(self.text_encoder.parameters()).device
+        out = self.text_encoder(tok.input_ids.to(te_device))[0]
+        return out.to(self.device, self.dtype)
+
+    def encode_images(self, x01: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """VAE latents (with gradient) of images (B,3,R,R) in [0,1], scaled by the VAE's latent scale."""
+        x = x01.to(self.device, self.dtype) * 2 - 1
+        posterior = self.vae.encode(x).latent_dist
+        return posterior.sample(generator=generator) * self.latent_scale
+
+    @torch.no_grad()
+    def predict_noise(self, latents: Tensor, t: Tensor, embeddings: Tensor) -> Tensor:
+        """UNet epsilon prediction (no gradient); moves the UNet on and off the GPU when offloading."""
+        if self.offload_unet:
+            self.unet.to(self.device)
+        try:
+            return self.unet(latents.to(self.dtype), t, encoder_hidden_states=embeddings).sample
+        finally:
+            if self.offload_unet:
+                self.unet.to("cpu")
+
+
+def _check_folder(path: Path) -> None:
+    missing = [c for c in COMPONENTS if not (path / c).is_dir()]
+    if missing:
+        raise ModelNotFoundError(
+            f"not a complete diffusers Stable Diffusion folder: missing {', '.join(m + '/' for m in missing)}",
+            path=path,
+            hint="point at a folder laid out like a diffusers SD model (model_index.json, unet/, vae/, "
+                 "text_encoder/, tokenizer/, scheduler/), or at a single .safetensors/.ckpt file")
+
+
+def _load_folder(path: Path, dtype: torch.dtype):
+    from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+    from transformers import CLIPTextModel, CLIPTokenizer
+
+    _check_folder(path)
+    kw = dict(local_files_only=True)
+    try:
+        unet = UNet2DConditionModel.from_pretrained(path, subfolder="unet", torch_dtype=dtype, **kw)
+        vae = AutoencoderKL.from_pretrained(path, subfolder="vae", torch_dtype=dtype, **kw)
+        text_encoder = CLIPTextModel.from_pretrained(path, subfolder="text_encoder", torch_dtype=dtype, **kw)
+        tokenizer = CLIPTokenizer.from_pretrained(path, subfolder="tokenizer", **kw)
+        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", **kw)
+    except (OSError, ValueError, EnvironmentError) as exc:
+        raise ModelNotFoundError(f"could not load the Stable Diffusion folder: {exc}", path=path,
+                                 hint="check that every component folder has its config and weights") from exc
+    return unet, vae, text_encoder, tokenizer, scheduler
+
+
+def _load_single_file(path: Path, dtype: torch.dtype, config: str | os.PathLike | None):
+    from diffusers import DDIMScheduler, StableDiffusionPipeline
+
+    kw = dict(local_files_only=True, torch_dtype=dtype)
+    if config is not None:
+        kw["config"] = str(config)
+    try:
+        pipe = StableDiffusionPipeline.from_single_file(str(path), **kw)
+    except Exception as exc:  # diffusers raises several types here; all mean "cannot build it locally"
+        raise ModelNotFoundError(
+            f"could not load the single-file checkpoint with a local config: {exc}", path=path,
+            hint="pass the matching diffusers config folder (model_index.json and component configs) as "
+                 "`single_file_config`, or convert the checkpoint to a diffusers folder") from exc
+    scheduler = DDIMScheduler.from_config(pipe.scheduler.config)
+    return pipe.unet, pipe.vae, pipe.text_encoder, pipe.tokenizer, scheduler
+
+
+def load_stable_diffusion(path: str | os.PathLike, device: torch.device | str | None = None,
+                          dtype: torch.dtype | None = None, cpu_offload: bool = False,
+                          attention_slicing: bool = True, single_file_config: str | os.PathLike | None = None
+                          ) -> StableDiffusion:
+    """Load SD from a local diffusers folder or .safetensors/.ckpt file (`local_files_only=True`).
+
+    fp16 on CUDA (fp32 on CPU) unless `dtype` says otherwise. With `cpu_offload` the text encoder stays
+    on the CPU (used once per prompt) and the UNet visits the GPU only for its no-grad forward.
+    """
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise ModelNotFoundError("the Stable Diffusion model path does not exist", path=path, hint=how_to_set("sd"))
+    dev = get_device(str(device)) if device is not None else get_device()
+    cuda = is_cuda(dev)
+    if dtype is None:
+        dtype = torch.float16 if cuda else torch.float32
+    if path.is_file():
+        if path.suffix.lower() not in SINGLE_FILE_SUFFIXES:
+            raise ModelNotFoundError("not a Stable Diffusion checkpoint (expected .safetensors or .ckpt, "
+                                     "or a diffusers folder)", path=path, hint=how_to_set("sd"))
+        unet, vae, text_encoder, tokenizer, scheduler = _load_single_file(path, dtype, single_file_config)
+    else:
+        unet, vae, text_encoder, tokenizer, scheduler = _load_folder(path, dtype)
+
+    offload = bool(cpu_offload and cuda)
+    if offload:
+        text_encoder.to("cpu", torch.float32)
+        unet.to("cpu")
+    else:
+        text_encoder.to(dev)
+        unet.to(dev)
+    vae.to(dev)
+    if cuda and attention_slicing:
+        unet.set_attention_slice("auto")
+        if hasattr(vae, "enable_slicing"):
+            vae.enable_slicing()
+    return StableDiffusion(unet=unet, vae=vae, text_encoder=text_encoder, tokenizer=tokenizer,
+                           scheduler=scheduler, device=dev, dtype=dtype, offload_unet=offload, path=path)

@@ -1,0 +1,63 @@
+"""Stable Diffusion score distillation (paper Eq. SDS) with the official stage-2 settings.
+
+Classifier-free guidance (scale 100), t ~ U[20, 980] of 1000, w(t) = 1 - alpha_bar_t, the render
+resized to the model's resolution and VAE-encoded with gradient; the UNet runs without gradient.
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.models.sd import StableDiffusion
+from core.repaint.guidance import GuidanceResult, TimestepSampler, distillation_loss
+
+
+class SDSGuidance:
+    """Score distillation from a loaded StableDiffusion; prompt embeddings are computed once and cached."""
+
+    def __init__(self, sd: StableDiffusion, prompt: str, negative_prompt: str = "",
+                 guidance_scale: float = 100.0, t_range: tuple[float, float] = (0.02, 0.98),
+                 clip_value: float | None = None, clip_norm: float | None = None, seed: int | None = None):
+        self.sd = sd
+        self.guidance_scale = float(guidance_scale)
+        self.clip_value, self.clip_norm = clip_value, clip_norm
+        self.generator = torch.Generator().manual_seed(seed) if seed is not None else None
+        self.sampler = TimestepSampler(sd.alphas_cumprod.cpu(), t_range, self.generator)
+        self._cache: dict[str, Tensor] = {}
+        self.set_prompt(prompt, negative_prompt)
+
+    def embedding(self, prompt: str) -> Tensor:
+        """Text embedding (1, L, D) of one prompt, cached."""
+        if prompt not in self._cache:
+            self._cache[prompt] = self.sd.encode_text([prompt])
+        return self._cache[prompt]
+
+    def set_prompt(self, prompt: str, negative_prompt: str = "") -> None:
+        """Switch prompts; the [uncond, cond] batch is built from cached embeddings."""
+        self.prompt, self.negative_prompt = prompt, negative_prompt
+        self._embeddings = torch.cat([self.embedding(negative_prompt), self.embedding(prompt)])
+
+    def _noise(self, like: Tensor) -> Tensor:
+        if self.generator is None:
+            return torch.randn_like(like)
+        return torch.randn(like.shape, generator=self.generator, dtype=like.dtype).to(like.device)
+
+    def loss(self, rgb: Tensor, mask: Tensor | None = None, view: int = 0, step: int = 0) -> GuidanceResult:
+        """SDS loss of a render (B,3,H,W) in [0,1]; `mask`, `view`, `step` are unused (SD sees the whole view)."""
+        sd = self.sd
+        res = sd.resolution
+        x = rgb if rgb.shape[-2:] == (res, res) else F.interpolate(rgb, (res, res), mode="bilinear",
+                                                                   align_corners=False)
+        latents = sd.encode_images(x)
+        t = self.sampler.sample()
+        with torch.no_grad():
+            noise = self._noise(latents)
+            t_batch = torch.full((latents.shape[0],), t, device=latents.device, dtype=torch.long)
+            noisy = sd.scheduler.add_noise(latents.detach(), noise, t_batch)
+            emb = self._embeddings.repeat_interleave(latents.shape[0], dim=0)
+            eps = sd.predict_noise(torch.cat([noisy, noisy]), torch.cat([t_batch, t_batch]), emb)
+            eps_uncond, eps_cond = eps.float().chunk(2)
+            eps_hat = eps_uncond + self.guidance_scale * (eps_cond - eps_uncond)
+            grad = self.sampler.weight(t) * (eps_hat - noise.float())
+        return distillation_loss(latents, grad, t, self.clip_value, self.clip_norm)
