@@ -1,0 +1,189 @@
+"""The synthetic scene presets: objects, materials, camera rigs and the edit each one ships with.
+
+World units, +z up. Every surface is an object with an id (1, 2, ...; 0 is empty background), so the
+ground-truth mask has an id wherever the depth is non-zero.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from core.synth import rigs
+
+TEXTURES = ("plain", "checker", "stripes", "noise")
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One object: a primitive mesh placed by translation + yaw, with a Lambertian procedural material."""
+
+    name: str
+    mesh: str  # a key of core.synth.meshes.BUILDERS
+    params: dict
+    position: tuple[float, float, float]
+    color: tuple[float, float, float]
+    texture: str = "plain"  # one of TEXTURES
+    texture_scale: float = 4.0  # pattern cycles per world unit
+    color2: tuple[float, float, float] | None = None  # second texture colour; None = a darker `color`
+    yaw: float = 0.0  # degrees about +z
+
+    def second_color(self) -> tuple[float, float, float]:
+        if self.color2 is not None:
+            return self.color2
+        return tuple(float(0.45 * c + 0.04) for c in self.color)
+
+
+@dataclass(frozen=True)
+class Edit:
+    """The change that makes the edited variant: recolour object `target` or replace it by `replacement`."""
+
+    kind: str  # "recolor" or "replace"
+    target: str  # object name
+    color: tuple[float, float, float] | None = None
+    replacement: SceneObject | None = None
+    description: str = ""
+
+
+@dataclass
+class SceneSpec:
+    """A concrete scene: objects, camera rig, intrinsics and the edit."""
+
+    name: str
+    kind: str  # "bounded", "forward" or "unbounded"
+    objects: list[SceneObject]
+    edit: Edit
+    rig: Callable[[int, np.random.Generator], np.ndarray]  # (n, rng) -> (n, 4, 4) c2w
+    camera_angle_x: float
+    opaque: bool  # every pixel has a surface; images are written as RGB
+    near: float = 0.05
+    far: float = 50.0
+    extra: dict = field(default_factory=dict)
+
+    def edited_objects(self) -> list[SceneObject]:
+        """The objects of the edited variant (same ids and order; the target changed)."""
+        out = []
+        for obj in self.objects:
+            if obj.name != self.edit.target:
+                out.append(obj)
+            elif self.edit.kind == "recolor":
+                out.append(replace(obj, color=self.edit.color, color2=None))
+            else:
+                out.append(self.edit.replacement)
+        return out
+
+    def edited_id(self) -> int:
+        return 1 + [o.name for o in self.objects].index(self.edit.target)
+
+
+RED, GREEN, BLUE = (0.85, 0.12, 0.1), (0.15, 0.7, 0.2), (0.12, 0.3, 0.9)
+YELLOW, ORANGE, PURPLE = (0.92, 0.8, 0.15), (0.95, 0.5, 0.1), (0.55, 0.2, 0.75)
+GREY, LIGHT = (0.6, 0.6, 0.58), (0.82, 0.8, 0.76)
+
+
+def _floor(radius: float = 1.6) -> SceneObject:
+    return SceneObject("floor", "disc", {"radius": radius}, (0.0, 0.0, 0.0), LIGHT, "checker", 3.0,
+                       color2=(0.35, 0.35, 0.38))
+
+
+def _centre_objects() -> list[SceneObject]:
+    """Four primitives on a ring, resting on z = 0 (the demo layout)."""
+    return [
+        SceneObject("sphere", "sphere", {"radius": 0.42}, (0.7, 0.35, 0.42), RED, "checker", 5.0),
+        SceneObject("cube", "box", {"sx": 0.62, "sy": 0.62, "sz": 0.62}, (-0.55, 0.6, 0.31), GREEN,
+                    "stripes", 6.0, yaw=25.0),
+        SceneObject("cylinder", "cylinder", {"radius": 0.28, "height": 0.9}, (-0.6, -0.55, 0.45), ORANGE,
+                    "noise", 6.0),
+        SceneObject("torus", "torus", {"major": 0.34, "minor": 0.13}, (0.45, -0.7, 0.13), PURPLE,
+                    "checker", 7.0),
+    ]
+
+
+def _demo(rng: np.random.Generator) -> SceneSpec:
+    return SceneSpec(
+        "demo", "bounded", [_floor(), *_centre_objects()],
+        Edit("recolor", "sphere", color=BLUE, description="the red sphere becomes blue"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.3)), 0.75, opaque=False)
+
+
+def _similar(rng: np.random.Generator) -> SceneSpec:
+    reds = [(0.85, 0.2, 0.15), (0.8, 0.25, 0.2), (0.88, 0.22, 0.2), (0.82, 0.18, 0.17)]
+    textures = ["checker", "stripes", "noise", "plain"]
+    objs = [replace(o, color=c, texture=t, color2=None) for o, c, t in zip(_centre_objects(), reds, textures)]
+    return SceneSpec(
+        "similar", "bounded", [_floor(), *objs],
+        Edit("recolor", "cube", color=GREEN, description="the red striped cube becomes green"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.3)), 0.75, opaque=False)
+
+
+def _thin(rng: np.random.Generator) -> SceneSpec:
+    objs = [
+        _floor(),
+        SceneObject("pole", "cylinder", {"radius": 0.03, "height": 1.4}, (0.2, 0.1, 0.7), RED, "stripes", 8.0),
+        SceneObject("ball", "sphere", {"radius": 0.1}, (-0.45, 0.35, 0.1), YELLOW, "plain"),
+        SceneObject("cube", "box", {"sx": 0.55, "sy": 0.55, "sz": 0.55}, (-0.35, -0.6, 0.275), BLUE,
+                    "checker", 6.0, yaw=15.0),
+        SceneObject("torus", "torus", {"major": 0.3, "minor": 0.1}, (0.7, -0.4, 0.1), GREEN, "noise", 7.0),
+    ]
+    return SceneSpec(
+        "thin", "bounded", objs,
+        Edit("recolor", "pole", color=BLUE, description="the thin red pole becomes blue"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.4)), 0.75, opaque=False)
+
+
+def _forward(rng: np.random.Generator) -> SceneSpec:
+    objs = [
+        SceneObject("wall", "box", {"sx": 12.0, "sy": 0.2, "sz": 8.0}, (0.0, 2.1, 3.0), LIGHT, "noise", 2.5,
+                    color2=(0.45, 0.42, 0.5)),
+        SceneObject("floor", "box", {"sx": 12.0, "sy": 9.0, "sz": 0.2}, (0.0, -2.5, -0.1), GREY, "checker", 2.0,
+                    color2=(0.3, 0.3, 0.33)),
+        *_centre_objects(),
+    ]
+    return SceneSpec(
+        "forward", "forward", objs,
+        Edit("recolor", "sphere", color=BLUE, description="the red sphere becomes blue"),
+        rigs.forward_plane(center=(0.0, -4.0, 0.9), target=(0.0, 0.0, 0.5), extent=(0.8, 0.5)), 0.9,
+        opaque=True)
+
+
+def _room360(rng: np.random.Generator) -> SceneSpec:
+    # The walls reach past the floor and ceiling discs so the room is closed without slivers.
+    objs = [
+        SceneObject("floor", "disc", {"radius": 5.05}, (0.0, 0.0, 0.0), LIGHT, "checker", 2.0,
+                    color2=(0.35, 0.35, 0.38)),
+        SceneObject("walls", "cylinder", {"radius": 5.0, "height": 4.2, "inward": True, "caps": False},
+                    (0.0, 0.0, 2.0), (0.7, 0.75, 0.85), "stripes", 1.5, color2=(0.35, 0.4, 0.55)),
+        SceneObject("ceiling", "disc", {"radius": 5.05}, (0.0, 0.0, 4.0), (0.9, 0.88, 0.8), "noise", 1.5),
+        *_centre_objects(),
+    ]
+    return SceneSpec(
+        "room360", "unbounded", objs,
+        Edit("recolor", "sphere", color=BLUE, description="the red sphere becomes blue"),
+        rigs.ring(radius=2.6, heights=(0.9, 1.8), target=(0.0, 0.0, 0.35)), 1.0, opaque=True)
+
+
+def _replace(rng: np.random.Generator) -> SceneSpec:
+    spec = _demo(rng)
+    cube = next(o for o in spec.objects if o.name == "cube")
+    cone = replace(cube, name="cone", mesh="cone", params={"radius": 0.36, "height": 0.8},
+                   position=(cube.position[0], cube.position[1], 0.4))
+    spec.name = "replace"
+    spec.edit = Edit("replace", "cube", replacement=cone,
+                     description="the green striped cube is replaced by a green striped cone")
+    return spec
+
+
+PRESETS: dict[str, tuple[str, Callable[[np.random.Generator], SceneSpec]]] = {
+    "demo": ("four distinct-coloured primitives on a checker floor, 360 views, transparent background", _demo),
+    "similar": ("four similar red primitives told apart by texture (checker, stripes, noise, plain)", _similar),
+    "thin": ("a thin pole and a small ball beside larger objects", _thin),
+    "forward": ("LLFF-like forward-facing capture of objects before a textured wall; opaque", _forward),
+    "room360": ("360-degree capture inside a textured room, every pixel has a surface; opaque", _room360),
+    "replace": ("the demo layout whose edited variant replaces the cube by a cone", _replace),
+}
+
+
+def build_spec(name: str, rng: np.random.Generator) -> SceneSpec:
+    """The scene of preset `name` (a key of PRESETS)."""
+    return PRESETS[name][1](rng)

@@ -1,0 +1,230 @@
+"""Offscreen rasterizer (moderngl, standalone EGL context) for the synthetic scenes.
+
+Colour: Lambert + ambient shading of procedural textures, supersampled 3x3 and box-filtered.
+Ground truth: z-depth (-z in camera coordinates, from the interpolated vertex position, float32) and
+the object id, both taken from the centre subsample of each 3x3 block, which is exactly the pixel
+centre (u + 0.5, v + 0.5), so they are not antialiased.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.synth.meshes import build
+from core.synth.presets import TEXTURES, SceneObject
+
+SUPERSAMPLE = 3  # odd, so the middle subsample of each block sits on the pixel centre
+
+_VERT = """
+#version 330
+uniform mat4 model;
+uniform mat4 view;
+uniform mat4 proj;
+uniform mat3 normal_mat;
+in vec3 in_pos;
+in vec3 in_normal;
+out vec3 v_obj;
+out vec3 v_world;
+out vec3 v_normal;
+out float v_zdepth;
+void main() {
+    vec4 w = model * vec4(in_pos, 1.0);
+    vec4 c = view * w;
+    v_obj = in_pos;
+    v_world = w.xyz;
+    v_normal = normal_mat * in_normal;
+    v_zdepth = -c.z;
+    gl_Position = proj * c;
+}
+"""
+
+_FRAG = """
+#version 330
+uniform vec3 color1;
+uniform vec3 color2;
+uniform int tex_kind;       // 0 plain, 1 checker, 2 stripes, 3 noise
+uniform float tex_scale;
+uniform vec3 tex_offset;
+uniform float obj_id;
+uniform vec3 cam_pos;
+uniform vec3 light_dir0;
+uniform vec3 light_dir1;
+in vec3 v_obj;
+in vec3 v_world;
+in vec3 v_normal;
+in float v_zdepth;
+layout(location = 0) out vec4 out_color;
+layout(location = 1) out vec2 out_gt;
+
+float hash(ivec3 c) {
+    uvec3 p = uvec3(c);
+    uint h = p.x * 73856093u ^ p.y * 19349663u ^ p.z * 83492791u;
+    h = (h ^ (h >> 16u)) * 0x45d9f3bu;
+    h = (h ^ (h >> 16u)) * 0x45d9f3bu;
+    h ^= h >> 16u;
+    return float(h & 0xffffffu) / 16777215.0;
+}
+
+float value_noise(vec3 p) {
+    ivec3 i = ivec3(floor(p));
+    vec3 f = fract(p);
+    f = f * f * (3.0 - 2.0 * f);
+    float n000 = hash(i), n100 = hash(i + ivec3(1, 0, 0));
+    float n010 = hash(i + ivec3(0, 1, 0)), n110 = hash(i + ivec3(1, 1, 0));
+    float n001 = hash(i + ivec3(0, 0, 1)), n101 = hash(i + ivec3(1, 0, 1));
+    float n011 = hash(i + ivec3(0, 1, 1)), n111 = hash(i + ivec3(1, 1, 1));
+    return mix(mix(mix(n000, n100, f.x), mix(n010, n110, f.x), f.y),
+               mix(mix(n001, n101, f.x), mix(n011, n111, f.x), f.y), f.z);
+}
+
+float pattern(vec3 p) {
+    if (tex_kind == 1) {
+        ivec3 c = ivec3(floor(p));
+        return float((c.x + c.y + c.z) & 1);
+    }
+    if (tex_kind == 2) {
+        return step(0.5, fract(p.z + 0.35 * p.x));
+    }
+    if (tex_kind == 3) {
+        float n = 0.55 * value_noise(p) + 0.3 * value_noise(2.03 * p) + 0.15 * value_noise(4.11 * p);
+        return smoothstep(0.35, 0.65, n);
+    }
+    return 0.0;
+}
+
+void main() {
+    vec3 n = normalize(v_normal);
+    if (dot(n, cam_pos - v_world) < 0.0) n = -n;   // two-sided: room walls are seen from inside
+    float shade = 0.35 + 0.55 * max(dot(n, light_dir0), 0.0) + 0.2 * max(dot(n, light_dir1), 0.0);
+    vec3 albedo = mix(color1, color2, pattern(v_obj * tex_scale + tex_offset));
+    out_color = vec4(min(albedo * shade, vec3(1.0)), 1.0);
+    out_gt = vec2(v_zdepth, obj_id);
+}
+"""
+
+_LIGHTS = (np.array([0.45, 0.3, 0.84]), np.array([-0.6, -0.5, 0.3]))
+
+
+def projection(fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+               near: float, far: float) -> np.ndarray:
+    """OpenGL clip matrix of a pinhole camera: pixel (u, v) centres at +0.5, v down, like Cameras.project."""
+    return np.array([
+        [2 * fx / width, 0.0, 1.0 - 2 * cx / width, 0.0],
+        [0.0, 2 * fy / height, 2 * cy / height - 1.0, 0.0],
+        [0.0, 0.0, -(far + near) / (far - near), -2 * far * near / (far - near)],
+        [0.0, 0.0, -1.0, 0.0],
+    ])
+
+
+@dataclass
+class Frame:
+    """One rendered view: straight-alpha RGBA uint8 (H,W,4), z-depth float32 (H,W), object ids uint8 (H,W)."""
+
+    rgba: np.ndarray
+    depth: np.ndarray
+    mask: np.ndarray
+
+
+class Rasterizer:
+    """Renders lists of SceneObject from pinhole cameras with one standalone EGL context (use as a context manager)."""
+
+    def __init__(self, width: int, height: int, near: float = 0.05, far: float = 50.0):
+        import moderngl
+
+        self.width, self.height, self.near, self.far = width, height, near, far
+        self.ctx = moderngl.create_standalone_context(backend="egl", require=330)
+        self.prog = self.ctx.program(vertex_shader=_VERT, fragment_shader=_FRAG)
+        s = SUPERSAMPLE
+        self.color = self.ctx.texture((width * s, height * s), 4, dtype="f4")
+        self.gt = self.ctx.texture((width * s, height * s), 2, dtype="f4")
+        self.depth_rb = self.ctx.depth_renderbuffer((width * s, height * s))
+        self.fbo = self.ctx.framebuffer([self.color, self.gt], self.depth_rb)
+        self._vaos: dict = {}
+
+    def __enter__(self) -> "Rasterizer":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+    def release(self) -> None:
+        """Free the GL objects and the context."""
+        for vao, vbo, ibo in self._vaos.values():
+            vao.release()
+            vbo.release()
+            ibo.release()
+        self._vaos.clear()
+        self.fbo.release()
+        self.color.release()
+        self.gt.release()
+        self.depth_rb.release()
+        self.prog.release()
+        self.ctx.release()
+
+    def _vao(self, obj: SceneObject):
+        key = (obj.mesh, tuple(sorted(obj.params.items())))
+        if key not in self._vaos:
+            verts, idx = build(obj.mesh, **obj.params)
+            vbo = self.ctx.buffer(np.ascontiguousarray(verts, dtype="f4").tobytes())
+            ibo = self.ctx.buffer(np.ascontiguousarray(idx, dtype="u4").tobytes())
+            vao = self.ctx.vertex_array(self.prog, [(vbo, "3f 3f", "in_pos", "in_normal")], ibo, index_element_size=4)
+            self._vaos[key] = (vao, vbo, ibo)
+        return self._vaos[key][0]
+
+    def render(self, objects: list[SceneObject], c2w: np.ndarray, fx: float, fy: float, cx: float,
+               cy: float, ids: list[int] | None = None) -> Frame:
+        """Render `objects` (ids 1..n unless `ids` is given) from the OpenGL camera-to-world pose `c2w`."""
+        import moderngl
+
+        s = SUPERSAMPLE
+        w, h = self.width, self.height
+        proj = projection(fx * s, fy * s, cx * s, cy * s, w * s, h * s, self.near, self.far)
+        view = np.linalg.inv(np.asarray(c2w, dtype=np.float64))
+        self.fbo.use()
+        self.fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        p = self.prog
+        p["view"].write(view.T.astype("f4").tobytes())
+        p["proj"].write(proj.T.astype("f4").tobytes())
+        p["cam_pos"].value = tuple(float(x) for x in c2w[:3, 3])
+        for i, light in enumerate(_LIGHTS):
+            p[f"light_dir{i}"].value = tuple(float(x) for x in light / np.linalg.norm(light))
+        for k, obj in enumerate(objects):
+            model = model_matrix(obj)
+            normal_mat = np.linalg.inv(model[:3, :3]).T
+            p["model"].write(model.T.astype("f4").tobytes())
+            p["normal_mat"].write(normal_mat.T.astype("f4").tobytes())
+            p["color1"].value = tuple(float(c) for c in obj.color)
+            p["color2"].value = tuple(float(c) for c in obj.second_color())
+            p["tex_kind"].value = TEXTURES.index(obj.texture)
+            p["tex_scale"].value = float(obj.texture_scale)
+            p["tex_offset"].value = (0.137 + 0.31 * k, 0.271, 0.419)  # keeps pattern edges off flat faces
+            p["obj_id"].value = float(ids[k] if ids is not None else k + 1)
+            self._vao(obj).render(moderngl.TRIANGLES)
+        color = np.frombuffer(self.color.read(), dtype="f4").reshape(h * s, w * s, 4)[::-1]
+        gt = np.frombuffer(self.gt.read(), dtype="f4").reshape(h * s, w * s, 2)[::-1]
+        mean = color.reshape(h, s, w, s, 4).mean(axis=(1, 3), dtype=np.float64)
+        alpha = mean[..., 3:]
+        rgb = np.where(alpha > 0, mean[..., :3] / np.maximum(alpha, 1e-12), 0.0)
+        rgba = np.round(np.clip(np.concatenate([rgb, alpha], -1), 0, 1) * 255).astype(np.uint8)
+        centre = gt[s // 2::s, s // 2::s]
+        return Frame(rgba, np.ascontiguousarray(centre[..., 0], dtype=np.float32),
+                     np.round(centre[..., 1]).astype(np.uint8))
+
+
+def model_matrix(obj: SceneObject) -> np.ndarray:
+    """Object-to-world 4x4: rotation by `yaw` about +z, then translation to `position`."""
+    a = np.radians(obj.yaw)
+    m = np.eye(4)
+    m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+    m[:3, 3] = obj.position
+    return m
+
+
+def world_bbox(obj: SceneObject) -> np.ndarray:
+    """World-space axis-aligned bounding box of an object's mesh: [[min xyz], [max xyz]]."""
+    verts, _ = build(obj.mesh, **obj.params)
+    pts = verts[:, :3].astype(np.float64) @ model_matrix(obj)[:3, :3].T + obj.position
+    return np.stack([pts.min(0), pts.max(0)])
