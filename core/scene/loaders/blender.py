@@ -1,0 +1,44 @@
+"""NeRF-synthetic / Blender scenes: `transforms_{train,val,test}.json` next to the image folders.
+
+Poses are already OpenGL camera-to-world. RGBA images keep their alpha (compositing is the
+renderer's choice); a `background` colour and an `aabb` box in the JSON are kept on the scene.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from core.errors import SceneError
+from core.scene.loaders.common import wanted
+from core.scene.loaders.transforms_json import frames_of, load_frames, parse_aabb, parse_background, read_json
+from core.scene.scene import Scene
+
+SPLITS = ("train", "val", "test")
+
+def is_blender(root: Path) -> bool:
+    """Whether `root` holds at least one `transforms_<split>.json`."""
+    return any((root / f"transforms_{s}.json").is_file() for s in SPLITS)
+
+def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+    """Load a NeRF-synthetic scene; every split file found becomes a split (train is required)."""
+    root = Path(root)
+    if not (root / "transforms_train.json").is_file():
+        raise SceneError("transforms_train.json not found (a NeRF-synthetic scene needs its train split)", root)
+    out, background, aabb = {}, None, None
+    for split in SPLITS:
+        path = root / f"transforms_{split}.json"
+        if not path.is_file():
+            continue
+        meta = read_json(path)
+        frames = frames_of(meta, path)
+        if split == "train":
+            background = parse_background(meta, path)
+            aabb = parse_aabb(meta, path)
+        if wanted(split, splits):
+            out[split] = load_frames(meta, frames, list(range(len(frames))), root, path, downscale, same_size=True)
+    extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
+    if aabb is not None:
+        extra["aabb"] = aabb
+    has_alpha = any(im.shape[2] == 4 for sp in out.values() for im in sp.images[:1])
+    extra["alpha"] = bool(has_alpha)
+    return Scene(root=root, format="blender", splits=out, background=background, extra=extra)
+

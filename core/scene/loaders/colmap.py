@@ -1,0 +1,117 @@
+"""COLMAP sparse models (binary or text) read with pycolmap, images from `images/` (or `images_N/`).
+
+Poses are converted from COLMAP's world-to-camera OpenCV convention to OpenGL camera-to-world once,
+here; images of non-pinhole camera models are undistorted; the sparse points and their colours
+become `scene.points`. Registered images sorted by name; every 8th is test.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from core.errors import SceneError
+from core.scene.cameras import Cameras, opencv_to_opengl
+from core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from core.scene.loaders.images import list_images, read_image
+from core.scene.loaders.undistort import undistort_image, undistorted_camera
+from core.scene.scene import Scene
+
+MODEL_FILES = ("cameras.bin", "cameras.txt")
+
+
+def has_model(folder: Path) -> bool:
+    """Whether `folder` directly holds a COLMAP model (cameras, images and points files)."""
+    return any((folder / f).is_file() for f in MODEL_FILES)
+
+
+def find_model(root: Path) -> Path | None:
+    """The model folder of a COLMAP scene: `sparse/0`, `sparse/`, or `root` itself; None when absent."""
+    for cand in (root / "sparse" / "0", root / "sparse", root):
+        if has_model(cand):
+            return cand
+    sparse = root / "sparse"
+    if sparse.is_dir():
+        subs = sorted(p for p in sparse.iterdir() if p.is_dir() and has_model(p))
+        if subs:
+            return subs[0]
+    return None
+
+
+def read_model(model: Path) -> pycolmap.Reconstruction:
+    """Read a model folder with pycolmap; a partial or corrupt model is a `SceneError`."""
+    for stem in ("cameras", "images", "points3D"):
+        if not ((model / f"{stem}.bin").is_file() or (model / f"{stem}.txt").is_file()):
+            raise SceneError(f"the COLMAP model is incomplete: {stem}.bin / {stem}.txt is missing", model,
+                             hint="re-export the model (colmap model_converter) or run structure-from-motion again")
+    try:
+        rec = pycolmap.Reconstruction()
+        rec.read(str(model))
+    except Exception as exc:  # noqa: BLE001 - pycolmap raises plain RuntimeError/ValueError on bad files
+        raise SceneError(f"cannot read the COLMAP model ({exc})", model) from exc
+    return rec
+
+
+def _image_dir(root: Path, downscale: float) -> Path:
+    if float(downscale).is_integer() and downscale > 1 and (root / f"images_{int(downscale)}").is_dir():
+        return root / f"images_{int(downscale)}"
+    return root / "images"
+
+
+def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+    """Load a COLMAP scene folder (with `sparse/0` or `sparse/` and `images/`)."""
+    root = Path(root)
+    model = find_model(root)
+    if model is None:
+        raise SceneError("no COLMAP model found (expected cameras/images/points3D .bin or .txt in sparse/0 or "
+                         "sparse/)", root / "sparse" if (root / "sparse").exists() else root,
+                         hint="run structure-from-motion (`repaint-nerf sfm`) or point to the model folder")
+    rec = read_model(model)
+    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    if not images:
+        raise SceneError("the COLMAP model has no registered images", model)
+    img_dir = _image_dir(root, downscale)
+    if not img_dir.is_dir() and model == root:
+        img_dir = root  # a bare model folder with the images beside it
+    paths, poses, cams = [], [], []
+    for im in images:
+        p = img_dir / im.name
+        if not p.is_file():
+            raise SceneError(f"image '{im.name}' of the COLMAP model not found in {img_dir}", p,
+                             hint="put the images the model was built from in images/")
+        w2c = np.eye(4)
+        w2c[:3, :4] = im.cam_from_world().matrix()
+        if not np.all(np.isfinite(w2c)):
+            raise SceneError(f"image '{im.name}': the pose contains NaN or infinite values", model)
+        c2w = check_pose(opencv_to_opengl(np.linalg.inv(w2c)), model, f"image '{im.name}'")
+        paths.append(p)
+        poses.append(c2w)
+        cams.append(rec.cameras[im.camera_id])
+    pins = np.asarray([undistorted_camera(c) for c in cams], dtype=np.float64)
+    cameras = Cameras.create(np.stack(poses), pins[:, 0], pins[:, 1], pins[:, 2], pins[:, 3], pins[:, 4], pins[:, 5])
+
+    def reader(i: int, p: Path) -> np.ndarray:
+        img = read_image(p)
+        cam = cams[i]
+        if (img.shape[1], img.shape[0]) != (cam.width, cam.height):
+            if (img.shape[0], img.shape[1]) == (cam.width, cam.height) or \
+                    abs(img.shape[1] / img.shape[0] - cam.width / cam.height) > 0.01 * cam.width / cam.height:
+                img = read_image(p, orient=False)  # COLMAP saw the stored pixels, not the EXIF-rotated ones
+            cam = pycolmap.Camera(cam.todict())
+            cam.rescale(int(img.shape[1]), int(img.shape[0]))
+        return undistort_image(img, cam)[0]
+
+    tr, te = every_eighth_split(len(images))
+    out = {}
+    for name, idx in (("train", tr), ("test", te)):
+        if idx and wanted(name, splits):
+            out[name] = load_split(cameras[idx], [paths[i] for i in idx], [images[i].name for i in idx], downscale,
+                                   reader=lambda k, p, idx=idx: reader(idx[k], p))
+    pts = rec.points3D
+    points = np.asarray([pt.xyz for pt in pts.values()], dtype=np.float64).reshape(-1, 3)
+    colors = np.asarray([pt.color for pt in pts.values()], dtype=np.uint8).reshape(-1, 3)
+    models = sorted({c.model_name for c in cams})
+    return Scene(root=root, format="colmap", splits=out, points=points if len(points) else None,
+                 point_colors=colors if len(points) else None,
+                 extra={"model_dir": str(model), "camera_models": models})

@@ -1,0 +1,83 @@
+"""Checks and helpers every loader shares: pose validation, the every-8th test split, downscaling."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import SceneError, UserError
+from core.scene.cameras import Cameras
+from core.scene.loaders.images import fit_image, read_image
+from core.scene.scene import SceneSplit
+
+TEST_EVERY = 8  # LLFF convention: images 0, 8, 16, ... are the test split
+
+
+def check_downscale(downscale: float) -> float:
+    """Validate a --downscale factor (> 0; 2 halves width and height)."""
+    try:
+        d = float(downscale)
+    except (TypeError, ValueError):
+        d = float("nan")
+    if not math.isfinite(d) or d <= 0:
+        raise UserError(f"--downscale must be a positive number, got {downscale!r}", hint="e.g. --downscale 2")
+    return d
+
+
+def check_pose(c2w, path: Path, where: str) -> np.ndarray:
+    """A camera-to-world matrix as float64 4x4 with an orthonormal right-handed rotation.
+
+    Non-finite, singular or mirrored poses raise a `SceneError` naming `path` and `where` (the frame).
+    A rotation carrying a uniform scale is orthonormalised (polar decomposition).
+    """
+    m = np.asarray(c2w, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise SceneError(f"{where}: a pose must be a 4x4 (or 3x4) matrix, got shape {m.shape}", path)
+    if not np.all(np.isfinite(m)):
+        raise SceneError(f"{where}: the pose contains NaN or infinite values", path,
+                         hint="remove this frame or fix its transform_matrix")
+    rot = m[:3, :3]
+    svals = np.linalg.svd(rot, compute_uv=False)
+    if svals[-1] < 1e-6 * max(svals[0], 1e-12) or svals[0] < 1e-9:
+        raise SceneError(f"{where}: the pose is singular (its rotation has no inverse)", path,
+                         hint="remove this frame or fix its transform_matrix")
+    if np.linalg.det(rot) < 0:
+        raise SceneError(f"{where}: the pose is a reflection (left-handed rotation)", path,
+                         hint="fix the transform_matrix; rotations must have determinant +1")
+    out = m.copy()
+    out[3] = [0.0, 0.0, 0.0, 1.0]
+    if np.abs(rot.T @ rot - np.eye(3)).max() > 1e-5:
+        u, _, vt = np.linalg.svd(rot)
+        out[:3, :3] = u @ vt
+    return out
+
+
+def every_eighth_split(n: int) -> tuple[list[int], list[int]]:
+    """(train, test) indices with every 8th image (0, 8, ...) as test; one image goes to train only."""
+    if n < 2:
+        return list(range(n)), []
+    test = list(range(0, n, TEST_EVERY))
+    return [i for i in range(n) if i % TEST_EVERY], test
+
+
+def load_split(cameras: Cameras, paths: list[Path], names: list[str], downscale: float,
+               reader=None) -> SceneSplit:
+    """Read a split's images and fit them (and the cameras) to the downscaled size.
+
+    `cameras` describe the full-resolution images; an image stored at another size (a pre-shrunk
+    `images_N/` folder) is resized to the target. `reader(i, path)` may replace `read_image` (e.g. to undistort).
+    """
+    target = cameras.scaled(1.0 / downscale) if downscale != 1.0 else cameras
+    images = []
+    for i, p in enumerate(paths):
+        img = reader(i, p) if reader else read_image(p)
+        images.append(fit_image(img, int(target.width[i]), int(target.height[i]), p))
+    return SceneSplit(target, images, list(names), list(paths))
+
+
+def wanted(split: str, splits) -> bool:
+    """Whether `split` is among the requested `splits` (None = all)."""
+    return splits is None or split in splits

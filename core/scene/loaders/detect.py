@@ -1,0 +1,102 @@
+"""`load_scene`: recognise a dataset folder's format, load it, and normalise it into field space.
+
+Formats: NeRF-synthetic/Blender, nerfstudio `transforms.json`, LLFF `poses_bounds.npy`, COLMAP
+sparse models. A folder of bare photos needs structure-from-motion first: when
+`core.sfm.run.sfm_scene(root, downscale=...) -> Scene` exists it is called, else a `SceneError` says so.
+"""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from core.errors import SceneError, UserError
+from core.scene.loaders.blender import is_blender, load_blender
+from core.scene.loaders.colmap import find_model, load_colmap
+from core.scene.loaders.common import check_downscale
+from core.scene.loaders.images import list_images
+from core.scene.loaders.llff import load_llff
+from core.scene.loaders.nerfstudio import load_nerfstudio
+from core.scene.normalize import normalize_scene
+from core.scene.scene import SCENE_KINDS, Scene
+
+FORMATS = ("blender", "nerfstudio", "llff", "colmap", "photos")
+
+
+def detect_format(path: str | Path) -> tuple[str, Path]:
+    """(format, scene root) for a dataset folder or its description file; a `SceneError` when unknown."""
+    path = Path(path).expanduser()
+    if not path.exists():
+        raise SceneError("no such file or folder", path, hint="check the path")
+    if path.is_file():
+        name = path.name
+        if name.startswith("transforms_") and name.endswith(".json"):
+            return "blender", path.parent
+        if name.endswith(".json"):
+            return "nerfstudio", path
+        if name == "poses_bounds.npy":
+            return "llff", path.parent
+        raise SceneError("not a scene description: give a dataset folder, a transforms*.json or poses_bounds.npy",
+                         path)
+    root = path
+    if is_blender(root):
+        return "blender", root
+    if (root / "transforms.json").is_file():
+        return "nerfstudio", root
+    if (root / "poses_bounds.npy").is_file():
+        return "llff", root
+    if find_model(root) is not None:
+        return "colmap", root
+    if (root / "sparse").is_dir():
+        raise SceneError("COLMAP folder without a model: sparse/ holds no cameras/images/points3D files",
+                         root / "sparse", hint="run structure-from-motion (`repaint-nerf sfm`) or restore the model")
+    if list_images(root) or list_images(root / "images"):
+        return "photos", root
+    entries = [p for p in root.iterdir() if not p.name.startswith(".")]
+    if not entries:
+        raise SceneError("the folder is empty", root, hint="point to a dataset folder or a folder of photos")
+    raise SceneError("no scene found: expected transforms_train.json (NeRF-synthetic), transforms.json "
+                     "(nerfstudio), poses_bounds.npy (LLFF), sparse/0 (COLMAP) or photos", root)
+
+
+def _sfm_hook():
+    """`core.sfm.run.sfm_scene` when that module exists (structure-from-motion on bare photos), else None."""
+    try:
+        mod = importlib.import_module("core.sfm.run")
+    except ModuleNotFoundError as exc:
+        if exc.name and (exc.name == "core.sfm" or exc.name.startswith("core.sfm.")):
+            return None
+        raise
+    return getattr(mod, "sfm_scene", None)
+
+
+def _load_photos(root: Path, downscale: float, splits) -> Scene:
+    sfm = _sfm_hook()
+    if sfm is None:
+        raise SceneError("this folder holds photos without camera poses: structure-from-motion is needed", root,
+                         hint="run `repaint-nerf sfm` on it first (not available in this version yet)")
+    return sfm(root, downscale=downscale)
+
+
+LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_llff, "colmap": load_colmap,
+           "photos": _load_photos}
+
+
+def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None) -> Scene:
+    """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
+
+    `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind
+    ('forward' for LLFF, 'bounded' otherwise); `splits` restricts which splits' images are read.
+    """
+    downscale = check_downscale(downscale)
+    if kind is not None and kind not in SCENE_KINDS:
+        raise UserError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
+    splits = None if splits is None else ((splits,) if isinstance(splits, str) else tuple(splits))
+    fmt, root = detect_format(path)
+    scene = LOADERS[fmt](root, downscale=downscale, splits=splits)
+    if not scene.splits or sum(len(s) for s in scene.splits.values()) == 0:
+        raise SceneError(f"no images loaded (requested splits: {', '.join(splits or ('all',))})", root)
+    if kind is not None:
+        scene.kind = kind
+    scene.extra.setdefault("downscale", downscale)
+    normalize_scene(scene)
+    return scene

@@ -1,0 +1,87 @@
+"""LLFF forward-facing captures: `poses_bounds.npy` plus `images/` (or pre-shrunk `images_N/`).
+
+Each row holds a 3x5 matrix [R | t | (H, W, focal)] whose rotation columns are the camera's
+[down, right, back] axes in world space, then the near/far depth bounds of that view.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import SceneError
+from core.scene.cameras import Cameras
+from core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from core.scene.loaders.images import list_images
+from core.scene.scene import Scene
+
+
+def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
+    """(N, 3, 4) LLFF [down, right, back | t] -> (N, 4, 4) OpenGL [right, up, back | t] camera-to-world."""
+    out = np.tile(np.eye(4), (poses.shape[0], 1, 1))
+    out[:, :3, 0] = poses[:, :, 1]
+    out[:, :3, 1] = -poses[:, :, 0]
+    out[:, :3, 2] = poses[:, :, 2]
+    out[:, :3, 3] = poses[:, :, 3]
+    return out
+
+
+def opengl_to_llff(c2w: np.ndarray) -> np.ndarray:
+    """Inverse of `llff_to_opengl`: (N, 4, 4) OpenGL -> (N, 3, 4) LLFF layout (for writers and tests)."""
+    return np.stack([-c2w[:, :3, 1], c2w[:, :3, 0], c2w[:, :3, 2], c2w[:, :3, 3]], axis=-1)
+
+
+def image_folder(root: Path, downscale: float) -> Path:
+    """`images_N/` when N equals the downscale factor, else `images/`, else the least-shrunk `images_N/`."""
+    if float(downscale).is_integer() and downscale > 1 and list_images(root / f"images_{int(downscale)}"):
+        return root / f"images_{int(downscale)}"
+    if list_images(root / "images"):
+        return root / "images"
+    shrunk = sorted((int(m.group(1)), p) for p in root.glob("images_*")
+                    if (m := re.fullmatch(r"images_(\d+)", p.name)) and list_images(p))
+    if not shrunk:
+        raise SceneError("no images found: expected an 'images/' or 'images_N/' folder next to poses_bounds.npy",
+                         root)
+    return shrunk[0][1]
+
+
+def load_llff(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+    """Load an LLFF scene; every 8th image is test, near/far come from the per-view bounds."""
+    root = Path(root)
+    path = root / "poses_bounds.npy"
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except FileNotFoundError as exc:
+        raise SceneError("file not found", path) from exc
+    except (ValueError, OSError) as exc:
+        raise SceneError(f"not a readable .npy array ({exc})", path) from exc
+    if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0 or arr.dtype.kind not in "fiu":
+        raise SceneError(f"expected a numeric array of shape (N, 17) (3x5 pose + near/far per image), "
+                         f"got shape {arr.shape}", path, hint="regenerate it with LLFF's imgs2poses.py")
+    arr = arr.astype(np.float64)
+    n = arr.shape[0]
+    raw = arr[:, :15].reshape(n, 3, 5)
+    bounds = arr[:, 15:17]
+    if not np.all(np.isfinite(bounds)) or np.any(bounds <= 0):
+        raise SceneError("near/far bounds must be finite and positive", path)
+    hwf = raw[:, :, 4]
+    if not np.all(np.isfinite(hwf)) or np.any(hwf <= 0):
+        raise SceneError("image height, width and focal (column 5) must be finite and positive", path)
+    c2w = llff_to_opengl(raw[:, :, :4])
+    c2w = np.stack([check_pose(c2w[i], path, f"image {i}") for i in range(n)])
+
+    folder = image_folder(root, downscale)
+    files = list_images(folder)
+    if len(files) != n:
+        raise SceneError(f"{folder.name}/ holds {len(files)} images but poses_bounds.npy has {n} poses", path,
+                         hint="the images and poses must match one to one (sorted by file name)")
+    h, w, f = hwf[:, 0], hwf[:, 1], hwf[:, 2]
+    cams = Cameras.create(c2w, f, f, w / 2.0, h / 2.0, np.round(w), np.round(h))
+    tr, te = every_eighth_split(n)
+    out = {}
+    for name, idx in (("train", tr), ("test", te)):
+        if idx and wanted(name, splits):
+            out[name] = load_split(cams[idx], [files[i] for i in idx], [files[i].name for i in idx], downscale)
+    return Scene(root=root, format="llff", splits=out, kind="forward", near=float(bounds.min() * 0.9),
+                 far=float(bounds.max() * 1.1), extra={"bounds": bounds, "images_dir": folder.name})

@@ -1,0 +1,56 @@
+"""nerfstudio / instant-ngp scenes: one `transforms.json` with per-file or per-frame intrinsics.
+
+Split lists (`train_filenames`, `val_filenames`, `test_filenames`) are honoured; without them every
+8th image (sorted by file path) is test. Distorted cameras (k1.., p1..) are undistorted at load.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from core.errors import SceneError
+from core.scene.loaders.common import every_eighth_split, wanted
+from core.scene.loaders.transforms_json import frames_of, load_frames, parse_aabb, parse_background, read_json
+from core.scene.scene import Scene
+
+
+def _norm(p: str) -> str:
+    p = str(p).replace("\\", "/")
+    return p[2:] if p.startswith("./") else p
+
+
+def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+    """Load `root/transforms.json` (or the JSON file given) as a scene with train/test splits."""
+    root = Path(root)
+    path = root if root.is_file() else root / "transforms.json"
+    root = path.parent
+    meta = read_json(path)
+    frames = frames_of(meta, path)
+    order = sorted(range(len(frames)), key=lambda i: _norm(frames[i]["file_path"]))
+    lists = {s: meta.get(f"{s}_filenames") for s in ("train", "val", "test")}
+    if any(v is not None for v in lists.values()):
+        index = {_norm(frames[i]["file_path"]): i for i in order}
+        groups = {}
+        for s, names in lists.items():
+            if names is None:
+                continue
+            if not isinstance(names, list):
+                raise SceneError(f"'{s}_filenames' must be a list of file paths", path)
+            missing = [n for n in names if _norm(n) not in index]
+            if missing:
+                raise SceneError(f"'{s}_filenames' names {len(missing)} file(s) not among the frames, "
+                                 f"e.g. '{missing[0]}'", path)
+            groups[s] = [index[_norm(n)] for n in names]
+        if not groups.get("train"):
+            raise SceneError("the split lists give no 'train_filenames'", path)
+    else:
+        tr, te = every_eighth_split(len(order))
+        groups = {"train": [order[k] for k in tr]}
+        if te:
+            groups["test"] = [order[k] for k in te]
+    out = {s: load_frames(meta, frames, idx, root, path, downscale, same_size=False)
+           for s, idx in groups.items() if idx and wanted(s, splits)}
+    extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
+    aabb = parse_aabb(meta, path)
+    if aabb is not None:
+        extra["aabb"] = aabb
+    return Scene(root=root, format="nerfstudio", splits=out, background=parse_background(meta, path), extra=extra)

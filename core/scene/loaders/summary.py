@@ -1,0 +1,82 @@
+"""A JSON-ready description of a loaded scene (what `repaint-nerf info` and the editor show)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from core.scene.scene import Scene
+
+
+def _depth_gt(scene: Scene) -> dict:
+    gt = Path(scene.extra.get("gt_dir", scene.root / "gt"))
+    files = sorted(gt.glob("*/*_depth.npy")) if gt.is_dir() else []
+    return {"present": bool(files), "folder": str(gt) if files else None, "files": len(files)}
+
+
+def scene_summary(scene: Scene) -> dict:
+    """Format, splits with image counts and sizes, intrinsics, bounds (world) and normalisation, extras."""
+    splits = {}
+    for name, sp in scene.splits.items():
+        sizes = sorted({(int(w), int(h)) for w, h in zip(sp.cameras.width.tolist(), sp.cameras.height.tolist())})
+        splits[name] = {"images": len(sp), "size": list(sizes[0]) if len(sizes) == 1 else [list(s) for s in sizes]}
+    first = next(iter(scene.splits.values())).cameras
+    intr = np.concatenate([np.stack([s.cameras.fx.numpy(), s.cameras.fy.numpy(), s.cameras.cx.numpy(),
+                                     s.cameras.cy.numpy()], 1) for s in scene.splits.values()])
+    half = 1.0 / scene.norm.scale
+    norm = dict(scene.extra.get("normalization", {}))
+    alpha = any(im.ndim == 3 and im.shape[2] == 4 for sp in scene.splits.values() for im in sp.images[:1])
+    return {
+        "path": str(scene.root),
+        "format": scene.format,
+        "kind": scene.kind,
+        "downscale": float(scene.extra.get("downscale", 1.0)),
+        "splits": splits,
+        "intrinsics": {"fx": float(first.fx[0]), "fy": float(first.fy[0]), "cx": float(first.cx[0]),
+                       "cy": float(first.cy[0]), "vary": bool(np.ptp(intr, axis=0).max() > 1e-4)},
+        "bounds_world": {"region": norm.get("box"), "rule": norm.get("rule"),
+                         "field_cube": [[float(c - half) for c in scene.norm.center],
+                                        [float(c + half) for c in scene.norm.center]]},
+        "normalization": scene.norm.to_dict(),
+        "near": float(scene.near),
+        "far": float(scene.far),
+        "background": None if scene.background is None else [float(c) for c in scene.background],
+        "alpha": bool(alpha),
+        "points": 0 if scene.points is None else int(len(scene.points)),
+        "depth_gt": _depth_gt(scene),
+        "camera_models": scene.extra.get("camera_models"),
+    }
+
+
+def format_summary(info: dict) -> str:
+    """The summary as aligned human-readable lines."""
+    f = lambda v: f"{v:.6g}"  # noqa: E731
+    lines = [f"path            {info['path']}", f"format          {info['format']}",
+             f"kind            {info['kind']}"]
+    if info["downscale"] != 1.0:
+        lines.append(f"downscale       {f(info['downscale'])}")
+    for name, sp in info["splits"].items():
+        size = sp["size"]
+        size_s = f"{size[0]}x{size[1]}" if isinstance(size[0], int) else ", ".join(f"{w}x{h}" for w, h in size)
+        lines.append(f"split {name:<9} {sp['images']} images, {size_s}")
+    k = info["intrinsics"]
+    lines.append(f"intrinsics      fx={f(k['fx'])} fy={f(k['fy'])} cx={f(k['cx'])} cy={f(k['cy'])} "
+                 f"(first image; {'vary per image' if k['vary'] else 'same for all images'})")
+    if info.get("camera_models"):
+        lines.append(f"camera models   {', '.join(info['camera_models'])} (undistorted at load)")
+    b = info["bounds_world"]
+    if b["region"]:
+        lo, hi = b["region"]
+        lines.append(f"scene bounds    [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world, from {b['rule']})")
+    lo, hi = b["field_cube"]
+    n = info["normalization"]
+    lines.append(f"field cube      [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world)")
+    lines.append(f"normalisation   x_field = {f(n['scale'])} * (x_world - [{', '.join(map(f, n['center']))}])")
+    lines.append(f"near / far      {f(info['near'])} / {f(info['far'])} (world units)")
+    bg = info["background"]
+    lines.append("background      " + ("none given (random in training, white for evaluation)" if bg is None
+                                       else f"[{', '.join(map(f, bg))}]") + (", images have alpha" if info["alpha"] else ""))
+    lines.append(f"sparse points   {info['points'] or 'none'}")
+    d = info["depth_gt"]
+    lines.append(f"depth gt        {'yes, ' + str(d['files']) + ' files in ' + d['folder'] if d['present'] else 'none'}")
+    return "\n".join(lines)
