@@ -100,6 +100,12 @@ def _centre_objects() -> list[SceneObject]:
     ]
 
 
+def _spread_out(objs: list[SceneObject]) -> list[SceneObject]:
+    """The demo primitives rearranged across the view of a forward-facing rig (none hides another)."""
+    xy = {"sphere": (0.75, 0.1), "cube": (-0.8, 0.5), "cylinder": (-0.05, 0.9), "torus": (0.1, -0.7)}
+    return [replace(o, position=(*xy[o.name], o.position[2])) for o in objs]
+
+
 def _demo(rng: np.random.Generator) -> SceneSpec:
     return SceneSpec(
         "demo", "bounded", [_floor(), *_centre_objects()],
@@ -138,12 +144,12 @@ def _forward(rng: np.random.Generator) -> SceneSpec:
                     color2=(0.45, 0.42, 0.5)),
         SceneObject("floor", "box", {"sx": 12.0, "sy": 9.0, "sz": 0.2}, (0.0, -2.5, -0.1), GREY, "checker", 2.0,
                     color2=(0.3, 0.3, 0.33)),
-        *_centre_objects(),
+        *_spread_out(_centre_objects()),
     ]
     return SceneSpec(
         "forward", "forward", objs,
         Edit("recolor", "sphere", color=BLUE, description="the red sphere becomes blue"),
-        rigs.forward_plane(center=(0.0, -4.0, 0.9), target=(0.0, 0.0, 0.5), extent=(0.8, 0.5)), 0.9,
+        rigs.forward_plane(center=(0.0, -3.2, 1.0), target=(0.0, 0.3, 0.4), extent=(0.6, 0.35)), 0.9,
         opaque=True)
 
 
