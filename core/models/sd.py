@@ -19,6 +19,8 @@ from core.models.paths import how_to_set
 
 COMPONENTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
 SINGLE_FILE_SUFFIXES = (".safetensors", ".ckpt")
+# Only alphas_cumprod and add_noise are used; these silence diffusers' warnings about old SD configs.
+_DDIM_OVERRIDES = dict(clip_sample=False, set_alpha_to_one=False, steps_offset=1)
 
 
 @dataclass
@@ -108,7 +110,7 @@ def _load_folder(path: Path, dtype: torch.dtype):
         vae = AutoencoderKL.from_pretrained(path, subfolder="vae", torch_dtype=dtype, **kw)
         text_encoder = CLIPTextModel.from_pretrained(path, subfolder="text_encoder", torch_dtype=dtype, **kw)
         tokenizer = CLIPTokenizer.from_pretrained(path, subfolder="tokenizer", **kw)
-        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", **kw)
+        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", **_DDIM_OVERRIDES, **kw)
     except (OSError, ValueError, EnvironmentError) as exc:
         raise ModelNotFoundError(f"could not load the Stable Diffusion folder: {exc}", path=path,
                                  hint="check that every component folder has its config and weights") from exc
@@ -128,7 +130,7 @@ def _load_single_file(path: Path, dtype: torch.dtype, config: str | os.PathLike 
             f"could not load the single-file checkpoint with a local config: {exc}", path=path,
             hint="pass the matching diffusers config folder (model_index.json and component configs) as "
                  "`single_file_config`, or convert the checkpoint to a diffusers folder") from exc
-    scheduler = DDIMScheduler.from_config(pipe.scheduler.config)
+    scheduler = DDIMScheduler.from_config(pipe.scheduler.config, **_DDIM_OVERRIDES)
     return pipe.unet, pipe.vae, pipe.text_encoder, pipe.tokenizer, scheduler
 
 
