@@ -1,0 +1,114 @@
+"""`repaint-nerf train SCENE --workspace WS`: stage-1 reconstruction with a progress bar, checkpoints
+(Ctrl-C stops cleanly and saves; --resume continues) and a final test PSNR."""
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from pathlib import Path
+
+NAME = "train"
+HELP = "reconstruct a scene (stage 1) into a workspace; prints progress and the final test PSNR"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="dataset or photo folder (NeRF-synthetic, nerfstudio, LLFF, COLMAP)")
+    p.add_argument("--workspace", required=True, help="workspace folder (created if missing or empty)")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--steps", type=int, default=None, help="total training steps (a resumed run finishes them)")
+    budget.add_argument("--seconds", type=float, default=None,
+                        help="total training seconds (default 120 when neither is given)")
+    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (2 halves the size)")
+    p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
+    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper)")
+    p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds between checkpoints (0 = at the end)")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
+
+
+def _positive(name: str, value, allow_none=True):
+    from core.errors import UserError
+
+    if value is None and allow_none:
+        return
+    if value is None or not value > 0:
+        raise UserError(f"{name} must be positive, got {value}")
+
+
+def run(args: argparse.Namespace) -> int:
+    from core.errors import SceneError, WorkspaceError
+    from core.scene.loaders.detect import load_scene
+    from core.train.progress import ProgressBar
+    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from core.workspace.workspace import Workspace
+
+    scene_path = Path(args.scene)
+    if not scene_path.exists():
+        raise SceneError("no such scene folder", scene_path, hint="pass a dataset or photo folder")
+    for name in ("--steps", "--seconds", "--rays", "--lr"):
+        _positive(name, getattr(args, name[2:]))
+    seconds = args.seconds if args.seconds is not None or args.steps is not None else 120.0
+
+    scene_key = str(scene_path.resolve())
+    ws = Workspace.open_or_create(args.workspace)
+    old = ws.settings.get("scene")
+    if old and old != scene_key and ws.original_version is not None:
+        raise WorkspaceError(f"this workspace holds a reconstruction of another scene ({old})", ws.root,
+                             hint="pass a new folder to --workspace")
+    ws.update_settings(scene=scene_key, downscale=args.downscale)
+
+    scene = load_scene(scene_path, args.downscale)
+    cfg = TrainConfig(seed=args.seed, checkpoint_every_s=args.checkpoint_every)
+    if args.rays:
+        cfg.rays_per_batch = args.rays
+    if args.lr:
+        cfg.lr = args.lr
+    trainer = Stage1Trainer(scene, ws, cfg, device=args.device)
+    if args.resume:
+        if trainer.resume():
+            print(f"resumed at step {trainer.step_count} ({trainer.train_seconds:.0f} s trained)")
+        else:
+            print("no checkpoint to resume from; starting from scratch")
+    trainer.plan(args.steps, None if args.steps else seconds)
+    n_img = len(scene.train)
+    h, w = scene.train.images[0].shape[:2]
+    print(f"scene {scene_path} ({scene.format}): {n_img} training images {w}x{h}; device {trainer.device}")
+
+    stop = threading.Event()
+    interrupted = {"n": 0}
+
+    def on_sigint(signum, frame):
+        interrupted["n"] += 1
+        if interrupted["n"] > 1:
+            raise KeyboardInterrupt
+        stop.set()
+
+    bar = ProgressBar(total_steps=args.steps, total_seconds=None if args.steps else seconds)
+    ema = {"psnr": None}
+
+    def on_step(info):
+        p = info["psnr"]
+        ema["psnr"] = p if ema["psnr"] is None else 0.9 * ema["psnr"] + 0.1 * p
+        bar.update(info["step"], ema["psnr"], info["loss"])
+
+    in_main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, on_sigint) if in_main else None
+    try:
+        trainer.train(steps=args.steps, seconds=None if args.steps else seconds, callback=on_step, stop=stop)
+    finally:
+        if in_main:
+            signal.signal(signal.SIGINT, previous)
+        bar.close(trainer.step_count, ema["psnr"])
+    path = trainer.save_checkpoint()
+    if stop.is_set():
+        print(f"stopped at step {trainer.step_count}; checkpoint saved to {path}\n"
+              f"continue with: repaint-nerf train {args.scene} --workspace {args.workspace} --resume", file=sys.stderr)
+        return 130
+    version = trainer.save_version("reconstruction")
+    ev = trainer.evaluate(with_ssim=True)
+    print(f"trained {trainer.step_count} steps in {trainer.train_seconds:.1f} s "
+          f"({trainer.step_count / max(trainer.train_seconds, 1e-9):.1f} steps/s); saved version {version.id}")
+    print(f"{ev['split']} PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f} over {ev['views']} views")
+    return 0

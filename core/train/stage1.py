@@ -1,0 +1,530 @@
+"""Stage-1 trainer: fits the field to the training images (paper Eq. color), and to teacher features
+and depth priors when given (paper Eq. s1), with random-pixel batches, Adam and an LR schedule.
+
+Pixels of all training images sit on the device as one flat uint8 tensor, so a batch is one random
+gather. RGBA targets are composited over a random colour per ray and rendered over the same colour,
+which teaches the field transparent empty space. Outputs the losses do not need (feature, depth) are
+never asked from the renderer.
+"""
+from __future__ import annotations
+
+import dataclasses
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from core.device import get_device, synchronize
+from core.render import OccupancyGrid, RenderOptions, render_camera, render_rays
+from core.train import losses
+from core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
+from core.train.metrics import mse_to_psnr, psnr, ssim
+from core.train.schedule import LRSchedule
+
+CHECKPOINT_NAME = "stage1.safetensors"
+
+
+@dataclass
+class TrainConfig:
+    """Stage-1 training settings (JSON-serialisable; saved with checkpoints)."""
+
+    rays_per_batch: int = 4096  # paper: 4096
+    lr: float = 1e-2  # paper: Adam, 1e-2
+    betas: tuple[float, float] = (0.9, 0.99)  # official code
+    eps: float = 1e-15
+    weight_decay_mlp: float = 1e-6  # instant-ngp's L2 on the MLP weights (not on the hash table)
+    schedule: str = "exp"  # see LRSchedule
+    lr_final_factor: float = 0.1
+    warmup: float = 0.0
+    horizon_steps: int = 20000  # schedule length when a run has neither a step nor a time budget
+    color_loss: str = "mse"  # or "huber"
+    huber_delta: float = 0.1
+    lambda_feature: float = 1.0  # paper Eq. s1
+    lambda_depth: float = 0.1  # paper Eq. s1
+    depth_rays_fraction: float = 0.125  # extra rays on pixels with sparse depth priors
+    random_background: bool = True
+    perturb: bool = True
+    t_threshold: float = 1e-4
+    max_samples: int = 1024
+    grid_resolution: int = 128
+    grid_cascades: int = 1
+    seed: int = 0
+    checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        names = {f.name for f in dataclasses.fields(TrainConfig)}
+        kw = {k: v for k, v in d.items() if k in names}
+        if "betas" in kw:
+            kw["betas"] = tuple(kw["betas"])
+        return TrainConfig(**kw)
+
+
+def make_field(field_cfg=None, device: torch.device | None = None, image_size: int | None = None):
+    """The field for a config (the field package's default for this device when None)."""
+    from core.field import field as fieldmod
+
+    if field_cfg is None:
+        maker = getattr(fieldmod, "default_field_config", None)
+        if maker is not None:
+            try:
+                field_cfg = maker(device, image_size)
+            except TypeError:
+                field_cfg = maker()
+        else:
+            field_cfg = fieldmod.FieldConfig()
+    return fieldmod.NGPField(field_cfg).to(device), field_cfg
+
+
+def field_config_from_dict(d: dict):
+    """Rebuild a FieldConfig saved with `dataclasses.asdict` (unknown keys ignored, lists back to tuples)."""
+    from core.field.field import FieldConfig
+
+    kw = {}
+    for f in dataclasses.fields(FieldConfig):
+        if f.name in d:
+            v = d[f.name]
+            kw[f.name] = tuple(v) if isinstance(v, list) else v
+    return FieldConfig(**kw)
+
+
+def _flat_images(images: list[np.ndarray]) -> tuple[torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
+    """All images as one (P, C) uint8 tensor plus per-image offsets, widths and heights."""
+    chans = 4 if any(im.ndim == 3 and im.shape[2] == 4 for im in images) else 3
+    parts = []
+    for im in images:
+        im = np.asarray(im)
+        if im.ndim == 2:
+            im = np.repeat(im[..., None], 3, axis=2)
+        if im.dtype != np.uint8:
+            im = np.clip(np.asarray(im, np.float32) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        if im.shape[2] < chans:
+            im = np.concatenate([im, np.full(im.shape[:2] + (1,), 255, np.uint8)], axis=2)
+        parts.append(torch.from_numpy(np.ascontiguousarray(im[..., :chans])).reshape(-1, chans))
+    hs = np.array([im.shape[0] for im in images], np.int64)
+    ws = np.array([im.shape[1] for im in images], np.int64)
+    offsets = np.concatenate([[0], np.cumsum(hs * ws)])
+    return torch.cat(parts), offsets, ws, hs
+
+
+def _resample_index(u, v, w_img, h_img, w_t, h_t):
+    """Nearest pixel of a (h_t, w_t) map for pixel (u, v) of a (h_img, w_img) image."""
+    fu = torch.div(u * w_t, w_img, rounding_mode="floor")
+    fv = torch.div(v * h_t, h_img, rounding_mode="floor")
+    return fv * w_t + fu
+
+
+def _get(obj, key):
+    if isinstance(obj, dict):
+        return obj.get(key)
+    return getattr(obj, key, None)
+
+
+class Stage1Trainer:
+    """Trains a field (and its occupancy grid) on a scene; see the module docstring."""
+
+    def __init__(self, scene, workspace=None, train_cfg: TrainConfig | None = None, field_cfg=None,
+                 device: torch.device | str | None = None, feature_targets=None, depth_priors=None):
+        self.scene = scene
+        self.workspace = workspace
+        self.cfg = train_cfg or TrainConfig()
+        self.device = device if isinstance(device, torch.device) else get_device(device)
+        torch.manual_seed(self.cfg.seed)
+        self.gen = torch.Generator(device=self.device)
+        self.gen.manual_seed(self.cfg.seed)
+
+        split = scene.train
+        pixels, offsets, ws, hs = _flat_images(split.images)
+        self.pixels = pixels.to(self.device)
+        self.n_pixels = int(offsets[-1])
+        self.offsets = torch.as_tensor(offsets, device=self.device)
+        self.widths = torch.as_tensor(ws, device=self.device)
+        self.heights = torch.as_tensor(hs, device=self.device)
+        self.uniform_size = bool((ws == ws[0]).all() and (hs == hs[0]).all())
+        self.has_alpha = self.pixels.shape[1] == 4
+        self.cameras = scene.field_cameras("train").to(self.device)
+
+        self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
+        if self.features is not None and field_cfg is not None and getattr(field_cfg, "feature_dim", 0) != self.feature_dim:
+            field_cfg = dataclasses.replace(field_cfg, feature_dim=self.feature_dim)
+        self.field, self.field_cfg = make_field(field_cfg, self.device, int(max(ws.max(), hs.max())))
+        if self.features is not None and getattr(self.field_cfg, "feature_dim", 0) != self.feature_dim:
+            self.field_cfg = dataclasses.replace(self.field_cfg, feature_dim=self.feature_dim)
+            self.field = type(self.field)(self.field_cfg).to(self.device)
+        self.depth, self.depth_pixels = (self._prepare_depth(depth_priors) if depth_priors is not None
+                                         else (None, None))
+
+        self.grid = OccupancyGrid(resolution=self.cfg.grid_resolution, cascades=self.cfg.grid_cascades,
+                                  bound=float(getattr(self.field_cfg, "bound", 1.0)), device=self.device)
+        self.optimizer = self._make_optimizer()
+        self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
+        self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
+        self.budget_steps: int | None = None
+        self.budget_seconds: float | None = None
+        self.step_count = 0
+        self.train_seconds = 0.0
+        self.skipped_steps = 0
+        bg = scene.background
+        self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
+        self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
+            + (("depth",) if self.depth is not None else ())
+
+    # -- set-up -----------------------------------------------------------------------------------
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        groups = []
+        pg = self.field.parameter_groups() if hasattr(self.field, "parameter_groups") else {"all": list(self.field.parameters())}
+        for name, params in pg.items():
+            params = [p for p in params if p.requires_grad]
+            if params:
+                wd = self.cfg.weight_decay_mlp if name in ("mlp", "feature") else 0.0
+                groups.append({"params": params, "lr": self.cfg.lr, "weight_decay": wd, "name": name})
+        kw = dict(lr=self.cfg.lr, betas=tuple(self.cfg.betas), eps=self.cfg.eps)
+        try:
+            return torch.optim.Adam(groups, fused=True, **kw)
+        except (RuntimeError, TypeError):
+            return torch.optim.Adam(groups, foreach=True, **kw)
+
+    def _prepare_features(self, targets) -> torch.Tensor:
+        n = len(self.scene.train)
+        if len(targets) != n:
+            raise ValueError(f"{len(targets)} feature maps for {n} training images")
+        maps = [torch.as_tensor(np.asarray(targets[i])) for i in range(n)]
+        self.feature_dim = int(maps[0].shape[-1])
+        self.feat_h = torch.tensor([m.shape[0] for m in maps], device=self.device)
+        self.feat_w = torch.tensor([m.shape[1] for m in maps], device=self.device)
+        offs = np.concatenate([[0], np.cumsum([m.shape[0] * m.shape[1] for m in maps])])
+        self.feat_offsets = torch.as_tensor(offs, device=self.device)
+        return torch.cat([m.reshape(-1, self.feature_dim).to(torch.float16) for m in maps]).to(self.device)
+
+    def _prepare_depth(self, priors) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Depth priors as z-depth in field units per flat pixel (NaN = none), and the pixels that have one
+        when they are sparse (those get extra rays every step)."""
+        n = len(self.scene.train)
+        if len(priors) != n:
+            raise ValueError(f"{len(priors)} depth priors for {n} training images")
+        scale = float(self.scene.norm.scale)
+        flat = torch.full((self.n_pixels,), float("nan"))
+        offs, ws, hs = self.offsets.cpu(), self.widths.cpu(), self.heights.cpu()
+        for i in range(n):
+            p = priors[i]
+            if p is None:
+                continue
+            w, h, o = int(ws[i]), int(hs[i]), int(offs[i])
+            if isinstance(p, (tuple, list)) and len(p) == 2:
+                dense, valid = p
+            elif _get(p, "z") is not None:
+                u = torch.as_tensor(np.asarray(_get(p, "u")), dtype=torch.float64).floor().long()
+                v = torch.as_tensor(np.asarray(_get(p, "v")), dtype=torch.float64).floor().long()
+                z = torch.as_tensor(np.asarray(_get(p, "z")), dtype=torch.float32)
+                keep = (u >= 0) & (u < w) & (v >= 0) & (v < h) & torch.isfinite(z) & (z > 0)
+                flat[o + v[keep] * w + u[keep]] = z[keep] * scale
+                continue
+            elif _get(p, "depth") is not None:
+                dense, valid = _get(p, "depth"), _get(p, "valid")
+            else:
+                dense, valid = p, None
+            d = torch.as_tensor(np.asarray(dense, dtype=np.float32))
+            ok = torch.isfinite(d) & (d > 0)
+            if valid is not None:
+                ok &= torch.as_tensor(np.asarray(valid)).bool()
+            d = torch.where(ok, d * scale, torch.full_like(d, float("nan")))
+            if d.shape != (h, w):
+                vv, uu = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+                d = d.reshape(-1)[_resample_index(uu, vv, w, h, d.shape[1], d.shape[0])]
+            flat[o:o + h * w] = d.reshape(-1)
+        have = torch.isfinite(flat)
+        sparse = None
+        if have.float().mean() < 0.5:
+            sparse = have.nonzero()[:, 0].to(self.device)
+            if sparse.numel() == 0:
+                sparse = None
+        return flat.to(self.device), sparse
+
+    # -- one step ---------------------------------------------------------------------------------
+    def sample_pixels(self, n: int) -> torch.Tensor:
+        """`n` flat pixel indices drawn uniformly over all training pixels (plus sparse-depth pixels)."""
+        idx = torch.randint(0, self.n_pixels, (n,), generator=self.gen, device=self.device)
+        if self.depth_pixels is not None:
+            k = max(1, int(n * self.cfg.depth_rays_fraction))
+            pick = torch.randint(0, self.depth_pixels.numel(), (k,), generator=self.gen, device=self.device)
+            idx = torch.cat([idx, self.depth_pixels[pick]])
+        return idx
+
+    def pixel_coords(self, idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(image index, u, v) of flat pixel indices."""
+        if self.uniform_size:
+            hw = int(self.widths[0] * self.heights[0])
+            img = torch.div(idx, hw, rounding_mode="floor")
+            local = idx - img * hw
+            w = self.widths[0]
+        else:
+            img = torch.searchsorted(self.offsets[1:], idx, right=True)
+            local = idx - self.offsets[img]
+            w = self.widths[img]
+        v = torch.div(local, w, rounding_mode="floor")
+        return img, local - v * w, v
+
+    def make_batch(self) -> dict[str, torch.Tensor]:
+        """Rays, targets and background colours for one step."""
+        idx = self.sample_pixels(self.cfg.rays_per_batch)
+        img, u, v = self.pixel_coords(idx)
+        origins, dirs, dz = self.cameras.rays(img, u, v)
+        px = self.pixels[idx].float() * (1.0 / 255.0)
+        n = idx.shape[0]
+        if self.has_alpha and self.cfg.random_background and self.fixed_background is None:
+            bg = torch.rand(n, 3, generator=self.gen, device=self.device)
+        elif self.has_alpha:
+            bg = (self.fixed_background if self.fixed_background is not None
+                  else torch.ones(3, device=self.device)).expand(n, 3)
+        elif self.cfg.random_background and self.fixed_background is None:
+            bg = torch.rand(n, 3, generator=self.gen, device=self.device)  # opaque photos: forces opacity 1
+        else:
+            bg = None if self.fixed_background is None else self.fixed_background.expand(n, 3)
+        rgb = px[:, :3]
+        if self.has_alpha:
+            a = px[:, 3:4]
+            rgb = rgb * a + bg * (1.0 - a)
+        batch = {"origins": origins, "dirs": dirs, "dz": dz, "rgb": rgb, "background": bg}
+        if self.features is not None:
+            fidx = self.feat_offsets[img] + _resample_index(u, v, self.widths[img], self.heights[img],
+                                                            self.feat_w[img], self.feat_h[img])
+            batch["feature"] = self.features[fidx]
+        if self.depth is not None:
+            batch["depth"] = self.depth[idx]
+        return batch
+
+    def progress(self) -> float:
+        """Fraction of the planned training done (drives the LR schedule)."""
+        parts = []
+        if self.budget_steps:
+            parts.append(self.step_count / self.budget_steps)
+        if self.budget_seconds:
+            parts.append(self.train_seconds / self.budget_seconds)
+        if not parts:
+            parts.append(self.step_count / max(1, self.cfg.horizon_steps))
+        return max(parts)
+
+    def _set_lr(self) -> float:
+        f = self.schedule.factor(self.progress())
+        for g, base in zip(self.optimizer.param_groups, self.base_lrs):
+            g["lr"] = base * f
+        return self.cfg.lr * f
+
+    def step(self) -> dict[str, Any]:
+        """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took."""
+        t0 = time.perf_counter()
+        self.field.train()
+        self.grid.update(self.step_count, self.field.density)
+        lr = self._set_lr()
+        batch = self.make_batch()
+        opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
+                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb)
+        out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
+        color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
+        parts: dict[str, torch.Tensor] = {"color": color}
+        if self.features is not None:
+            parts["feature"] = losses.feature_loss(out["feature"], batch["feature"])
+        if self.depth is not None:
+            valid = torch.isfinite(batch["depth"])
+            parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
+        total = losses.stage1_loss(color, parts.get("feature"), parts.get("depth"),
+                                   self.cfg.lambda_feature, self.cfg.lambda_depth)
+        self.optimizer.zero_grad(set_to_none=True)
+        if torch.isfinite(total):
+            total.backward()
+            self.optimizer.step()
+        else:
+            self.skipped_steps += 1  # DESIGN.md: a non-finite step is skipped and counted, never applied
+        self.step_count += 1
+        with torch.no_grad():
+            mse = torch.mean((out["rgb"].detach() - batch["rgb"]) ** 2)
+        info = {k: float(v.detach()) for k, v in parts.items()}
+        synchronize(self.device)
+        dt = time.perf_counter() - t0
+        self.train_seconds += dt
+        info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt)
+        stats = out.get("stats") or {}
+        for key in ("samples", "samples_per_ray"):
+            if key in stats:
+                info[key] = float(stats[key])
+        return info
+
+    def train(self, steps: int | None = None, seconds: float | None = None,
+              callback: Callable[[dict], Any] | None = None, stop=None) -> dict | None:
+        """Train until the total step count reaches `steps` or the total training time reaches `seconds`
+        (both counted from the first step, so a resumed run finishes its plan), or until `stop` is set.
+
+        `stop` is a threading.Event or a callable returning True; `callback(info)` runs after every step.
+        The LR schedule spans the budget set by `plan` (else `horizon_steps`). Returns the last step's info.
+        """
+        should_stop = stop.is_set if isinstance(stop, threading.Event) else (stop or (lambda: False))
+        last_save = time.perf_counter()
+        info = None
+        while True:
+            if steps is not None and self.step_count >= steps:
+                break
+            if seconds is not None and self.train_seconds >= seconds:
+                break
+            if should_stop():
+                break
+            info = self.step()
+            if callback is not None:
+                callback(info)
+            every = self.cfg.checkpoint_every_s
+            if every and self.workspace is not None and time.perf_counter() - last_save > every:
+                self.save_checkpoint()
+                last_save = time.perf_counter()
+        return info
+
+    def plan(self, steps: int | None = None, seconds: float | None = None) -> None:
+        """Set the training budget the LR schedule spans (total steps and/or seconds)."""
+        self.budget_steps, self.budget_seconds = steps, seconds
+
+    @property
+    def done(self) -> bool:
+        """Whether the planned budget is spent (never, for an open-ended run)."""
+        return ((self.budget_steps is not None and self.step_count >= self.budget_steps)
+                or (self.budget_seconds is not None and self.train_seconds >= self.budget_seconds))
+
+    def train_for(self, seconds: float) -> dict:
+        """Train for about `seconds` more (at least one step); the editor's worker calls this between renders."""
+        info = self.train(steps=self.step_count + 1) or {}
+        if seconds > info.get("seconds", 0.0):
+            info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0)) or info
+        return info
+
+    # -- evaluation ---------------------------------------------------------------------------------
+    def eval_split(self) -> str:
+        """The split to evaluate on: test, else val, else train."""
+        for name in ("test", "val", "train"):
+            if name in self.scene.splits and len(self.scene.splits[name]):
+                return name
+        return "train"
+
+    def eval_background(self) -> torch.Tensor:
+        return self.fixed_background if self.fixed_background is not None else torch.ones(3, device=self.device)
+
+    @torch.no_grad()
+    def evaluate(self, split: str | None = None, max_views: int | None = None, with_ssim: bool = False) -> dict:
+        """Mean PSNR (and SSIM) of renders of a split against its images composited over the eval background."""
+        split = split or self.eval_split()
+        data = self.scene.split(split)
+        cams = self.scene.field_cameras(split).to(self.device)
+        bg = self.eval_background()
+        opts = RenderOptions(outputs=("rgb",), background=bg, t_threshold=self.cfg.t_threshold,
+                             max_samples=self.cfg.max_samples, perturb=False)
+        self.field.eval()
+        n = len(data) if max_views is None else min(max_views, len(data))
+        ps, ss = [], []
+        for i in range(n):
+            out = render_camera(self.field, self.grid, cams, i, opts)
+            gt = target_image(data.images[i], bg)
+            ps.append(psnr(out["rgb"].clamp(0, 1), gt))
+            if with_ssim:
+                ss.append(ssim(out["rgb"].clamp(0, 1), gt))
+        self.field.train()
+        res = {"split": split, "views": n, "psnr": float(np.mean(ps)) if ps else float("nan")}
+        if with_ssim:
+            res["ssim"] = float(np.mean(ss)) if ss else float("nan")
+        return res
+
+    # -- checkpoints ----------------------------------------------------------------------------------
+    def checkpoint(self) -> Checkpoint:
+        """The full training state: field, grid, optimiser, RNG, step, configs, scene facts."""
+        tensors = {f"field.{k}": v for k, v in self.field.state_dict().items()}
+        grid_t, grid_rest = split_state(self.grid.state_dict())
+        tensors.update({f"grid.{k}": v for k, v in grid_t.items()})
+        opt_t, opt_meta = optimizer_state(self.optimizer)
+        tensors.update({f"optim.{k}": v for k, v in opt_t.items()})
+        tensors["rng.sampler"] = self.gen.get_state()
+        tensors["rng.torch"] = torch.get_rng_state()
+        header = {
+            "kind": "stage1",
+            "step": self.step_count,
+            "train_seconds": self.train_seconds,
+            "field_config": dataclasses.asdict(self.field_cfg),
+            "train_config": dataclasses.asdict(self.cfg),
+            "grid": {"resolution": self.cfg.grid_resolution, "cascades": self.cfg.grid_cascades,
+                     "bound": float(getattr(self.field_cfg, "bound", 1.0)), "state": grid_rest},
+            "optim": opt_meta,
+            "budget": {"steps": self.budget_steps, "seconds": self.budget_seconds},
+            "scene": scene_facts(self.scene),
+        }
+        return Checkpoint(tensors, header)
+
+    def load(self, ckpt: Checkpoint) -> None:
+        """Restore a state written by `checkpoint` (same field config) to resume training."""
+        h = ckpt.header
+        self.field.load_state_dict(ckpt.section("field"))
+        self.grid.load_state_dict({**ckpt.section("grid"), **h["grid"].get("state", {})})
+        load_optimizer_state(self.optimizer, {k: v.to(self.device) for k, v in ckpt.section("optim").items()},
+                             h["optim"])
+        self.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]
+        self.gen.set_state(ckpt.tensors["rng.sampler"].cpu())
+        torch.set_rng_state(ckpt.tensors["rng.torch"].cpu())
+        self.step_count = int(h["step"])
+        self.train_seconds = float(h.get("train_seconds", 0.0))
+        b = h.get("budget") or {}
+        self.budget_steps, self.budget_seconds = b.get("steps"), b.get("seconds")
+
+    def checkpoint_path(self) -> Path:
+        if self.workspace is None:
+            raise ValueError("this trainer has no workspace to save into")
+        return self.workspace.checkpoints_dir / CHECKPOINT_NAME
+
+    def save_checkpoint(self) -> Path:
+        """Write the training state to the workspace's checkpoint (atomically)."""
+        path = self.checkpoint_path()
+        self.checkpoint().save(path)
+        return path
+
+    def resume(self) -> bool:
+        """Load the workspace's checkpoint if there is one; returns whether it did."""
+        path = self.checkpoint_path()
+        if not path.exists():
+            return False
+        self.load(Checkpoint.load(path, self.device))
+        return True
+
+    def load_version(self, path: str | Path) -> None:
+        """Load the field and grid of a saved version (undo/redo); the optimiser starts afresh."""
+        ck = Checkpoint.load(path, self.device)
+        self.field.load_state_dict(ck.section("field"))
+        self.grid.load_state_dict({**ck.section("grid"), **ck.header["grid"].get("state", {})})
+        self.optimizer = self._make_optimizer()
+
+    def save_version(self, name: str = "reconstruction"):
+        """Save the current field as a new stage-1 version of the workspace (never overwritten by edits)."""
+        return self.workspace.save_version(name, self.checkpoint(), kind="stage1")
+
+
+def scene_facts(scene) -> dict:
+    """What a checkpoint records about its scene (to reload it and map depths back to world units)."""
+    return {"root": str(scene.root), "format": scene.format, "kind": scene.kind,
+            "norm": scene.norm.to_dict(),
+            "background": None if scene.background is None else [float(c) for c in scene.background]}
+
+
+def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
+    """A uint8 (H, W, 3|4) image as float (H, W, 3) on the background's device, alpha composited over it."""
+    t = torch.as_tensor(np.asarray(image), device=background.device).float() / 255.0
+    if t.shape[-1] == 4:
+        return t[..., :3] * t[..., 3:4] + background * (1.0 - t[..., 3:4])
+    return t[..., :3]
+
+
+def restore_field(ckpt: Checkpoint, device: torch.device | str | None = None):
+    """(field, grid, header) from a checkpoint or version, ready to render (eval mode)."""
+    device = device if isinstance(device, torch.device) else get_device(device)
+    cfg = field_config_from_dict(ckpt.header["field_config"])
+    fld, _ = make_field(cfg, device)
+    fld.load_state_dict({k: v.to(device) for k, v in ckpt.section("field").items()})
+    g = ckpt.header["grid"]
+    grid = OccupancyGrid(resolution=g["resolution"], cascades=g["cascades"], bound=g["bound"], device=device)
+    grid.load_state_dict({**{k: v.to(device) for k, v in ckpt.section("grid").items()}, **g.get("state", {})})
+    fld.eval()
+    return fld, grid, ckpt.header
