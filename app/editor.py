@@ -1,0 +1,305 @@
+"""The desktop editor: a viewport streamed from the worker thread, camera input, patch selection and panels.
+
+The UI thread only does events, imgui, GL uploads and draws; every model call goes to the worker
+(`app.worker.Worker`) and comes back as a message. `run_editor` is the entry point of `repaint-nerf`.
+"""
+from __future__ import annotations
+
+import math
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from imgui_bundle import imgui
+
+from app.camera_control import CameraControl
+from app.panels import repaint as repaint_panel
+from app.panels import scene as scene_panel
+from app.panels import selection as selection_panel
+from app.panels import view as view_panel
+from app.state import EditorState
+from app.viewport import Viewport
+from app.window import Window
+from app.worker import Crashed, Frame, Reply, Status, Worker
+
+PANEL_WIDTH = 400
+MODEL_CHANGING = {"undo", "redo", "cancel", "load"}
+
+
+class EditorApp:
+    """One editor session: owns the window's viewport, the camera, the UI state and the worker."""
+
+    def __init__(self, window: Window, engine: Any, path: str | None = None, workspace: str | None = None,
+                 worker_kwargs: dict | None = None):
+        self.window = window
+        self.engine = engine
+        self.state = EditorState(scene_path=path or "", workspace=workspace)
+        self.state.capabilities = engine.capabilities()
+        self.viewport = Viewport(window.ctx)
+        self.camera: CameraControl | None = None
+        self.worker = Worker(engine, **(worker_kwargs or {})).start()
+        self.cache: dict = {}
+        self.view_size = (1, 1)
+        self.image_origin = (0.0, 0.0)
+        self.requested_key: tuple | None = None
+        self.shown_key: tuple | None = None
+        self.frames_shown = 0
+        self.last_frame: Frame | None = None
+        self.drag_start: tuple[float, float] | None = None
+        self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
+        self.events: list = []  # (time, what) log for tests and the viewport benchmark
+        self.open_scene(path)
+
+    # ---- actions (called by panels and input)
+    def call(self, name: str, *args: Any, **kwargs: Any) -> None:
+        self.worker.call(name, *args, **kwargs)
+
+    def open_scene(self, path: str | None) -> None:
+        self.state.loading = True
+        self.state.has_selection = False
+        self.viewport.upload_similarity(None)
+        self.worker.call("load", path, self.state.workspace)
+
+    def set_training(self, on: bool) -> None:
+        self.state.training = on
+        self.worker.set_training(on)
+
+    def snap_to_view(self, i: int) -> None:
+        cams = self.state.scene_info.get("cameras")
+        if self.camera is not None and cams is not None and 0 <= i < len(cams):
+            fov = math.degrees(2 * math.atan(0.5 * float(cams.height[i]) / float(cams.fy[i])))
+            self.camera.snap_to(cams.c2w[i].double().numpy(), fov_y=fov)
+
+    def clear_selection(self) -> None:
+        self.state.has_selection = False
+        self.state.masks_done = None
+        self.viewport.upload_similarity(None)
+        self.call("clear_selection")
+        self.worker.refresh()
+
+    def start_repaint(self) -> None:
+        s = self.state
+        opts = {"lambda_unmask": float(s.lambda_unmask), "steps": int(s.steps)}
+        if s.backend == "sd":
+            opts.update(sd_path=s.sd_path or None, clip_path=s.clip_path or None)
+        self.call("repaint", s.prompt, s.bg_prompt, s.backend, opts)
+
+    def export_png(self, path: str) -> None:
+        if self.camera is not None:
+            self.call("export_png", self.camera.cameras(*self.view_size), path)
+
+    def export_turntable(self, path: str, frames: int = 48) -> None:
+        if self.camera is None:
+            return
+        cam = CameraControl(**{k: getattr(self.camera, k) for k in ("target", "distance", "yaw", "pitch", "fov_y", "up")})
+        w, h = self.view_size
+        cams = []
+        for _ in range(frames):
+            cams.append(cam.cameras(w, h))
+            cam.yaw += 2 * math.pi / frames
+        self.call("export_turntable", cams, path)
+
+    # ---- messages from the worker
+    def _handle(self, msg: Any) -> None:
+        s = self.state
+        if isinstance(msg, Frame):
+            self.viewport.upload_frame(msg.data)
+            self.last_frame = msg
+            self.shown_key = msg.key
+            self.frames_shown += 1
+            s.render_ms, s.render_scale = msg.render_ms, msg.scale
+            self.events.append((time.perf_counter(), "frame", msg))
+        elif isinstance(msg, Status):
+            s.last_status = msg.info
+            s.history.add(msg.info)
+            if msg.info.get("phase") == "repaint" and msg.info.get("done"):
+                s.repaint_running = False
+        elif isinstance(msg, Reply):
+            self.events.append((time.perf_counter(), f"reply:{msg.name}", msg))
+            if msg.error is not None:
+                s.say(f"{msg.name}: {msg.error}", "error")
+                if msg.name == "load":
+                    s.loading = False
+                if msg.name == "repaint":
+                    s.repaint_running = False
+                return
+            if msg.name == "load":
+                s.loading = False
+                s.scene_info = dict(msg.value)
+                self.camera = CameraControl.framing(s.scene_info["cameras"])
+                self.worker.projector.reset()
+            elif msg.name == "select":
+                s.selection_busy = False
+                s.has_selection = True
+                self.viewport.upload_similarity(msg.value)
+                if s.view_mode not in ("similarity", "mask"):
+                    s.view_mode = "mask"
+            elif msg.name == "masks_for_all_views":
+                s.masks_done = int(msg.value)
+            elif msg.name == "repaint":
+                s.repaint_running = True
+                s.training = True
+                self.worker.set_training(True)
+            elif msg.name in ("export_png", "export_turntable", "save"):
+                s.say(f"wrote {msg.value}")
+            elif msg.name in ("undo", "redo") and not msg.value:
+                s.say(f"nothing to {msg.name}")
+            if msg.name in MODEL_CHANGING:
+                self.worker.refresh()
+        elif isinstance(msg, Crashed):
+            s.error = f"worker error in {msg.where}:\n{msg.text}"
+            s.training = False
+
+    # ---- input over the viewport image
+    def _image_pos(self, io) -> tuple[float, float]:
+        return ((io.mouse_pos.x - self.image_origin[0]) / max(self.view_size[0], 1),
+                (io.mouse_pos.y - self.image_origin[1]) / max(self.view_size[1], 1))
+
+    def _viewport_input(self, hovered: bool) -> None:
+        io = imgui.get_io()
+        cam = self.camera
+        if cam is None:
+            return
+        select_tool = self.state.tool == "select" and self.state.capabilities.get("select") is None
+        if hovered and imgui.is_mouse_clicked(imgui.MouseButton_.left) and select_tool:
+            self.drag_start = self._image_pos(io)
+        if self.drag_start is not None:
+            x, y = self._image_pos(io)
+            x0, y0 = self.drag_start
+            self.drag_rect = (min(x0, x), min(y0, y), max(x0, x), max(y0, y))
+            if imgui.is_mouse_released(imgui.MouseButton_.left) or not imgui.is_mouse_down(imgui.MouseButton_.left):
+                rect = tuple(float(np.clip(v, 0.0, 1.0)) for v in self.drag_rect)
+                self.drag_start = self.drag_rect = None
+                if (rect[2] - rect[0]) * self.view_size[0] >= 2 and (rect[3] - rect[1]) * self.view_size[1] >= 2:
+                    mode = "add" if io.key_shift else "sub" if io.key_ctrl else "new"
+                    if mode != "new" and not self.state.has_selection:
+                        mode = "new"
+                    self.state.selection_busy = True
+                    self.events.append((time.perf_counter(), "patch_release", rect))
+                    self.call("select", cam.cameras(*self.view_size), rect, mode)
+            return
+        if hovered:
+            d = io.mouse_delta
+            if imgui.is_mouse_dragging(imgui.MouseButton_.left, 0.0) and not select_tool:
+                cam.orbit(d.x, d.y)
+            if imgui.is_mouse_dragging(imgui.MouseButton_.right, 0.0):
+                cam.orbit(d.x, d.y) if select_tool else cam.pan(d.x, d.y, self.view_size[1])
+            if imgui.is_mouse_dragging(imgui.MouseButton_.middle, 0.0):
+                cam.pan(d.x, d.y, self.view_size[1])
+            if io.mouse_wheel:
+                cam.zoom(io.mouse_wheel)
+        if not io.want_text_input:
+            step = 10.0
+            keys = imgui.Key
+            if imgui.is_key_down(keys.left_arrow):
+                cam.orbit(-step, 0)
+            if imgui.is_key_down(keys.right_arrow):
+                cam.orbit(step, 0)
+            if imgui.is_key_down(keys.up_arrow):
+                cam.orbit(0, -step)
+            if imgui.is_key_down(keys.down_arrow):
+                cam.orbit(0, step)
+            if imgui.is_key_pressed(keys.equal) or imgui.is_key_pressed(keys.keypad_add):
+                cam.zoom(1)
+            if imgui.is_key_pressed(keys.minus) or imgui.is_key_pressed(keys.keypad_subtract):
+                cam.zoom(-1)
+            if imgui.is_key_pressed(keys.r):
+                cam.reset()
+
+    def _draw_viewport(self, width: float, height: float) -> None:
+        imgui.set_next_window_pos(imgui.ImVec2(0, 0))
+        imgui.set_next_window_size(imgui.ImVec2(width, height))
+        flags = (imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
+                 | imgui.WindowFlags_.no_scrollbar | imgui.WindowFlags_.no_bring_to_front_on_focus
+                 | imgui.WindowFlags_.no_scroll_with_mouse)
+        imgui.push_style_var(imgui.StyleVar_.window_padding, imgui.ImVec2(0, 0))
+        imgui.begin("Viewport", None, flags)
+        avail = imgui.get_content_region_avail()
+        self.view_size = (max(int(avail.x), 8), max(int(avail.y), 8))
+        pos = imgui.get_cursor_screen_pos()
+        self.image_origin = (pos.x, pos.y)
+        tex = self.viewport.draw(self.view_size, self.state.view_mode, self.state.threshold)
+        if tex is not None:
+            imgui.image(imgui.ImTextureRef(tex.glo), imgui.ImVec2(*self.view_size))
+        else:
+            imgui.invisible_button("##viewport", imgui.ImVec2(*self.view_size))
+            msg = "loading..." if self.state.loading else ("waiting for the first render..." if self.camera else
+                                                          "open a scene (Scene panel)")
+            imgui.set_cursor_screen_pos(imgui.ImVec2(pos.x + 20, pos.y + 20))
+            imgui.text(msg)
+        hovered = imgui.is_window_hovered()
+        self._viewport_input(hovered)
+        if self.drag_rect is not None:
+            x0, y0, x1, y1 = self.drag_rect
+            dl = imgui.get_window_draw_list()
+            ox, oy = self.image_origin
+            w, h = self.view_size
+            dl.add_rect(imgui.ImVec2(ox + x0 * w, oy + y0 * h), imgui.ImVec2(ox + x1 * w, oy + y1 * h),
+                        imgui.get_color_u32(imgui.ImVec4(1.0, 1.0, 0.2, 1.0)), rounding=0.0, thickness=2.0)
+        imgui.end()
+        imgui.pop_style_var()
+
+    def _draw_panels(self, x: float, width: float, height: float) -> None:
+        imgui.set_next_window_pos(imgui.ImVec2(x, 0))
+        imgui.set_next_window_size(imgui.ImVec2(width, height))
+        imgui.begin("Editor", None, imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
+                    | imgui.WindowFlags_.no_collapse)
+        s = self.state
+        if s.error:
+            imgui.text_colored(imgui.ImVec4(1, 0.35, 0.3, 1), s.error.strip().splitlines()[-1][:200])
+            if imgui.is_item_hovered():
+                imgui.set_tooltip(s.error[-3000:])
+            if imgui.button("Dismiss"):
+                s.error = None
+            imgui.separator()
+        for panel in (scene_panel, view_panel, selection_panel, repaint_panel):
+            try:
+                panel.draw(self)
+            except Exception:  # a bug in one panel must not take the editor down
+                s.error = f"panel {panel.__name__}:\n{traceback.format_exc()}"
+        imgui.separator()
+        for kind, text in s.messages:
+            color = imgui.ImVec4(1, 0.5, 0.4, 1) if kind == "error" else imgui.ImVec4(0.8, 0.8, 0.8, 1)
+            imgui.text_colored(color, text[:300])
+        if not self.worker.alive():
+            imgui.text_colored(imgui.ImVec4(1, 0.3, 0.3, 1), "the worker thread stopped")
+        imgui.end()
+
+    def frame(self, capture: bool = False) -> np.ndarray | None:
+        """Run one UI frame: messages, input, render requests, panels, draw. Returns a screenshot on request."""
+        self.window.begin_frame()
+        for msg in self.worker.poll():
+            self._handle(msg)
+        w, h = self.window.framebuffer_size()
+        panel_w = min(PANEL_WIDTH, max(w // 3, 200))
+        self._draw_viewport(w - panel_w, h)
+        self._draw_panels(w - panel_w, panel_w, h)
+        if self.camera is not None and self.state.scene_info.get("loaded"):
+            outputs = ("rgb", "depth") + (("feature",) if self.state.view_mode == "feature" else ())
+            key = (self.camera.state(), self.view_size, outputs)
+            if key != self.requested_key:
+                self.requested_key = key
+                self.events.append((time.perf_counter(), "request", key))
+                self.worker.request_render(self.camera.cameras(*self.view_size), key, outputs)
+        return self.window.end_frame(capture=capture)
+
+    def close(self) -> None:
+        self.worker.stop()
+        self.viewport.release()
+
+
+def run_editor(path: str | None = None, workspace: str | None = None) -> int:
+    """Open the editor window on `path` (None: the demo scene) and run until it is closed."""
+    from core.engine import Engine
+
+    window = Window(title="RePaint-NeRF" + (f" - {Path(path).name}" if path else ""))
+    app = EditorApp(window, Engine(), path, workspace)
+    try:
+        while not window.should_close():
+            app.frame()
+    finally:
+        app.close()
+        window.close()
+    return 0

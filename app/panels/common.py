@@ -1,0 +1,15 @@
+"""Small widgets the panels share: a disabled-with-reason notice for features not built yet."""
+from __future__ import annotations
+
+from imgui_bundle import imgui
+
+
+def unavailable(app, feature: str) -> bool:
+    """Show why `feature` is not available and return True when it is not (the caller then skips its widgets)."""
+    reason = app.state.capabilities.get(feature)
+    if reason is None:
+        return False
+    imgui.text_colored(imgui.ImVec4(1.0, 0.7, 0.3, 1.0), f"{feature}: not available yet")
+    if imgui.is_item_hovered():
+        imgui.set_tooltip(reason)
+    return True

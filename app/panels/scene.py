@@ -1,0 +1,54 @@
+"""Scene and training panel: open, training status with a live loss/PSNR plot, pause/resume, save, export."""
+from __future__ import annotations
+
+import numpy as np
+from imgui_bundle import imgui, implot
+
+from app.panels.common import unavailable
+
+
+def draw(app) -> None:
+    s = app.state
+    if not imgui.collapsing_header("Scene and training", imgui.TreeNodeFlags_.default_open.value):
+        return
+    _, s.scene_path = imgui.input_text("Path", s.scene_path)
+    if imgui.button("Open"):
+        app.open_scene(s.scene_path or None)
+    imgui.same_line()
+    if imgui.button("Demo scene"):
+        app.open_scene(None)
+    unavailable(app, "load")
+    info = s.scene_info
+    if s.loading:
+        imgui.text("loading...")
+    elif info.get("loaded"):
+        imgui.text(f"{info['name']} ({info['format']}), {info['views']} views")
+    else:
+        imgui.text("no scene loaded")
+    if unavailable(app, "train"):
+        return
+    changed, s.training = imgui.checkbox("Train", s.training)
+    if changed:
+        app.set_training(s.training)
+    st = s.last_status
+    if st:
+        imgui.text(f"{st.get('phase', '')} step {st.get('step', 0)}  loss {st.get('loss', float('nan')):.4f}  "
+                   f"PSNR {st.get('psnr', float('nan')):.2f} dB")
+    h = s.history
+    if h.steps and implot.begin_plot("##training", imgui.ImVec2(-1, 140)):
+        implot.setup_axes("step", "PSNR (dB) / loss", implot.AxisFlags_.auto_fit.value,
+                          implot.AxisFlags_.auto_fit.value)
+        xs = np.asarray(h.steps, dtype=np.float64)
+        implot.plot_line("PSNR", xs, np.asarray(h.psnr, dtype=np.float64))
+        implot.plot_line("loss x100", xs, np.asarray(h.loss, dtype=np.float64) * 100.0)
+        implot.end_plot()
+    if imgui.button("Save project"):
+        app.call("save")
+    _, s.export_path = imgui.input_text("PNG", s.export_path)
+    imgui.same_line()
+    if imgui.button("Export view"):
+        app.export_png(s.export_path)
+    _, s.video_path = imgui.input_text("Video", s.video_path)
+    imgui.same_line()
+    if imgui.button("Turntable"):
+        app.export_turntable(s.video_path)
