@@ -41,7 +41,7 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from core.errors import UserError, WorkspaceError
-    from core.render import RenderOptions, render_camera
+    from core.render.renderer import RenderOptions, render_camera
     from app.camera_control import CameraControl
     from core.scene.cameras import Cameras
     from core.scene.loaders.detect import load_scene

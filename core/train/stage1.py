@@ -19,7 +19,8 @@ import numpy as np
 import torch
 
 from core.device import get_device, synchronize
-from core.render import OccupancyGrid, RenderOptions, render_camera, render_rays
+from core.render.occupancy import OccupancyGrid
+from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.train import losses
 from core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
 from core.train.metrics import mse_to_psnr, psnr, ssim
@@ -168,6 +169,8 @@ class Stage1Trainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
+        self.profile = False
+        self.last_times: dict = {}
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
         self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
@@ -315,14 +318,30 @@ class Stage1Trainer:
         return self.cfg.lr * f
 
     def step(self) -> dict[str, Any]:
-        """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took."""
-        t0 = time.perf_counter()
+        """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took.
+
+        With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device).
+        """
+        prof = self.profile
+        times: dict[str, float] = {}
+        t0 = tick = time.perf_counter()
+
+        def lap(key: str) -> None:
+            nonlocal tick
+            if prof:
+                synchronize(self.device)
+                now = time.perf_counter()
+                times[key] = times.get(key, 0.0) + now - tick
+                tick = now
+
         self.field.train()
         self.grid.update(self.step_count, self.field.density)
+        lap("grid_update")
         lr = self._set_lr()
         batch = self.make_batch()
+        lap("batch")
         opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
-                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb)
+                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb, profile=prof)
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
@@ -333,12 +352,17 @@ class Stage1Trainer:
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
         total = losses.stage1_loss(color, parts.get("feature"), parts.get("depth"),
                                    self.cfg.lambda_feature, self.cfg.lambda_depth)
+        lap("forward")
         self.optimizer.zero_grad(set_to_none=True)
-        if torch.isfinite(total):
+        finite = bool(torch.isfinite(total))
+        if finite:
             total.backward()
+        lap("backward")
+        if finite:
             self.optimizer.step()
         else:
             self.skipped_steps += 1  # DESIGN.md: a non-finite step is skipped and counted, never applied
+        lap("optimizer")
         self.step_count += 1
         with torch.no_grad():
             mse = torch.mean((out["rgb"].detach() - batch["rgb"]) ** 2)
@@ -348,9 +372,12 @@ class Stage1Trainer:
         self.train_seconds += dt
         info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt)
         stats = out.get("stats") or {}
-        for key in ("samples", "samples_per_ray"):
+        for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
                 info[key] = float(stats[key])
+        if prof:
+            times["render"] = dict(stats.get("time", {}))
+            self.last_times = times
         return info
 
     def train(self, steps: int | None = None, seconds: float | None = None,
