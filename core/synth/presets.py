@@ -102,7 +102,7 @@ def _centre_objects() -> list[SceneObject]:
 
 def _spread_out(objs: list[SceneObject]) -> list[SceneObject]:
     """The demo primitives rearranged across the view of a forward-facing rig (none hides another)."""
-    xy = {"sphere": (0.75, 0.1), "cube": (-0.8, 0.5), "cylinder": (-0.05, 0.9), "torus": (0.1, -0.7)}
+    xy = {"sphere": (0.62, 0.15), "cube": (-0.8, 0.5), "cylinder": (-0.05, 0.9), "torus": (0.1, -0.7)}
     return [replace(o, position=(*xy[o.name], o.position[2])) for o in objs]
 
 
