@@ -19,10 +19,10 @@ from core.errors import UserError
 
 # Feature -> the module that provides it (checked by import, lazily: `core` stays fast to import).
 BACKENDS = {
-    "load": "core.scene.loaders",
+    "load": "core.scene.loaders.detect",
     "demo": "core.synth.demo",
     "field": "core.field.field",
-    "render": "core.render",
+    "render": "core.render.renderer",
     "train": "core.train.stage1",
     "select": "core.selection",
     "repaint": "core.repaint.trainer",
@@ -79,15 +79,23 @@ class Engine:
         """Load a dataset, photo folder or workspace (None: the built-in demo scene); build field and trainer."""
         if path is None:
             path = _backend("demo").demo_scene_path()
-        scene = _backend("load").load_scene(Path(path))
+        path = Path(path)
+        if not path.exists():
+            raise UserError("no such dataset, photo folder or workspace", path,
+                            hint="check the path, or open the demo scene")
+        scene = _backend("load").load_scene(path)
+        _backend("field"), _backend("render")  # a clear "not available" before any work
         ws_mod = _backend("workspace")
-        ws_root = Path(workspace) if workspace else Path(path) / ".repaint-nerf"
-        self.workspace = ws_mod.Workspace.open_or_create(ws_root)
-        self.scene = scene
-        stage1 = _backend("train")
-        self.trainer = stage1.Stage1Trainer(scene, workspace=self.workspace, device=self.device)
-        self.field, self.grid = self.trainer.field, self.trainer.grid
+        # Default workspace: next to the data, so the dataset folder itself is never written to.
+        ws_root = Path(workspace) if workspace else path.parent / f"{path.name}.repaint-nerf"
+        ws = ws_mod.Workspace.open_or_create(ws_root)
+        ws.update_settings(scene=str(path.resolve()))
+        trainer = _backend("train").Stage1Trainer(scene, ws, device=self.device)
+        trainer.resume()
+        self.scene, self.workspace, self.trainer = scene, ws, trainer
+        self.field, self.grid = trainer.field, trainer.grid
         self.selection = None
+        self.edit = None
         return self.info()
 
     def info(self) -> dict:
@@ -131,7 +139,7 @@ class Engine:
         want = tuple(outputs)
         if self.selection is not None and "feature" not in want:
             want = want + ("feature",)
-        opts = render.RenderOptions(outputs=want)
+        opts = render.RenderOptions(outputs=want, background=self.trainer.eval_background())
         with torch.no_grad():
             out = render.render_camera(self.field, self.grid, cameras.to(self.device), 0, opts, scale=scale,
                                        cancel=cancel)
@@ -204,8 +212,11 @@ class Engine:
 
     # ---- persistence and export
     def save(self) -> str:
+        """Write the training checkpoint, and the reconstruction as the first version if there is none yet."""
         self._need_scene()
         self.trainer.save_checkpoint()
+        if self.workspace.original_version is None:
+            self.trainer.save_version("reconstruction")
         return str(self.workspace.root)
 
     def export_png(self, cameras, path: str | Path) -> str:
