@@ -31,7 +31,8 @@ def l2_normalize(features: np.ndarray, axis: int = -1, eps: float = 1e-8) -> np.
 
 
 def check_image(image: np.ndarray, what: str = "image") -> np.ndarray:
-    """Validate an RGB(A) uint8 image and return its (H, W, 3) RGB part; bad input is a UserError."""
+    """Validate an RGB(A) uint8 image and return it as (H, W, 3) RGB; RGBA is composited over white
+    (NeRF-synthetic convention) so transparent pixels carry no hidden colour. Bad input is a UserError."""
     img = np.asarray(image)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
@@ -42,4 +43,8 @@ def check_image(image: np.ndarray, what: str = "image") -> np.ndarray:
         if np.issubdtype(img.dtype, np.floating) and img.size and float(np.nanmax(img)) <= 1.0:
             img = np.clip(img * 255.0 + 0.5, 0, 255)
         img = np.clip(img, 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(img[..., :3])
+    if img.shape[2] == 4:
+        a = img[..., 3:4].astype(np.float32) * np.float32(1.0 / 255.0)
+        rgb = img[..., :3].astype(np.float32) * a + np.float32(255.0) * (1.0 - a)
+        return (rgb + 0.5).astype(np.uint8)
+    return np.ascontiguousarray(img)
