@@ -1,0 +1,139 @@
+"""`repaint-nerf bench viewport`: the editor in a real window on the demo scene while it trains, driven by
+scripted input; reports UI frame time p50/p99, camera move -> first new frame, patch release -> mask on
+screen, and slider -> mask (in frames). Starts its own Xvfb when there is no DISPLAY."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+
+HELP = "viewport latency in a real window on the demo scene while training (UI frame p50/p99, move/patch/slider latency)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", required=True, help="output JSON file")
+    p.add_argument("--scene", default=None, help="scene to open (default: the demo scene)")
+    p.add_argument("--seconds", type=float, default=20.0, help="length of the scripted orbit phase")
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=800)
+
+
+def _ensure_display():
+    """Start an Xvfb for the run when there is no DISPLAY; returns the process to stop (or None)."""
+    if os.environ.get("DISPLAY"):
+        return None
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        from core.errors import UserError
+
+        raise UserError("no DISPLAY and Xvfb is not installed", hint="run `bash install.sh` or set DISPLAY")
+    num = next(n for n in range(140, 200) if not Path(f"/tmp/.X{n}-lock").exists())
+    proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1920x1080x24", "-nolisten", "tcp"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    for _ in range(100):
+        if Path(f"/tmp/.X11-unix/X{num}").exists():
+            break
+        time.sleep(0.05)
+    os.environ["DISPLAY"] = f":{num}"
+    return proc
+
+
+def _pct(xs, q):
+    return float(np.percentile(xs, q)) if len(xs) else None
+
+
+def run(args: argparse.Namespace) -> int:
+    from core.engine import Engine
+
+    missing = {k: v for k, v in Engine.capabilities().items() if k in ("load", "demo", "field", "render", "train") and v}
+    if missing:
+        print("the viewport benchmark needs the stage-1 backends, which are not available yet:")
+        for k, v in missing.items():
+            print(f"  {k}: {v}")
+        return 2
+    os.environ.setdefault("REPAINT_NERF_NO_VSYNC", "1")
+    xvfb = _ensure_display()
+    try:
+        return _bench(args, Engine())
+    finally:
+        if xvfb is not None:
+            xvfb.terminate()
+            xvfb.wait(timeout=10)
+
+
+def _bench(args, engine) -> int:
+    from app.editor import EditorApp
+    from app.window import Window
+
+    window = Window(width=args.width, height=args.height)
+    app = EditorApp(window, engine, args.scene)
+    result: dict = {"scene": args.scene or "demo", "window": [args.width, args.height]}
+    try:
+        t0 = time.perf_counter()
+        while app.last_frame is None:
+            app.frame()
+            if app.state.error or time.perf_counter() - t0 > 300:
+                raise RuntimeError(app.state.error or "no first frame within 300 s")
+        result["first_frame_s"] = time.perf_counter() - t0
+        # Orbit phase: a camera move every 0.5 s, frame times measured throughout (training runs between).
+        frame_ms, move_ms = [], []
+        pending: tuple | None = None
+        t_end = time.perf_counter() + args.seconds
+        next_move = time.perf_counter()
+        while time.perf_counter() < t_end:
+            now = time.perf_counter()
+            if now >= next_move and pending is None:
+                app.camera.orbit(15, 0)
+                pending = (now, None)
+                next_move = now + 0.5
+            f0 = time.perf_counter()
+            app.frame()
+            frame_ms.append((time.perf_counter() - f0) * 1000)
+            if pending is not None:
+                if pending[1] is None:
+                    pending = (pending[0], app.requested_key)
+                elif app.shown_key == pending[1]:
+                    move_ms.append((time.perf_counter() - pending[0]) * 1000)
+                    pending = None
+        result.update(ui_frame_ms_p50=_pct(frame_ms, 50), ui_frame_ms_p99=_pct(frame_ms, 99),
+                      ui_frames=len(frame_ms), move_to_first_frame_ms_p50=_pct(move_ms, 50),
+                      move_to_first_frame_ms_p99=_pct(move_ms, 99), moves=len(move_ms),
+                      training_step=app.state.last_status.get("step"))
+        # Patch release -> mask on screen.
+        if app.state.capabilities.get("select") is None:
+            w, h = app.view_size
+            app.state.tool = "select"
+            t_rel = time.perf_counter()
+            app.call("select", app.camera.cameras(w, h), (0.45, 0.45, 0.55, 0.55), "new")
+            while not app.state.has_selection and time.perf_counter() - t_rel < 60:
+                app.frame()
+            app.frame()
+            result["patch_to_mask_ms"] = (time.perf_counter() - t_rel) * 1000 if app.state.has_selection else None
+            # Slider -> mask: frames until the screen changes after a threshold change.
+            base = app.frame(capture=True)
+            app.state.threshold = -0.5 if app.state.threshold > 0 else 0.9
+            n = 0
+            while n < 10:
+                n += 1
+                if np.abs(app.frame(capture=True).astype(int) - base).sum() > 0:
+                    break
+            result["slider_to_mask_frames"] = n
+        else:
+            result["patch_to_mask_ms"] = result["slider_to_mask_frames"] = None
+            result["selection"] = app.state.capabilities["select"]
+    finally:
+        app.close()
+        window.close()
+    from core.device import describe
+
+    result["device"] = describe()
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
