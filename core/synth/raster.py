@@ -103,6 +103,37 @@ void main() {
 }
 """
 
+# Reduces each SUPERSAMPLE x SUPERSAMPLE block to one pixel: colour box-filtered (premultiplied, then
+# back to straight alpha), ground truth copied from the middle subsample (the pixel centre).
+_RESOLVE_VERT = """
+#version 330
+void main() {
+    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}
+"""
+
+_RESOLVE_FRAG = """
+#version 330
+uniform sampler2D color_ss;
+uniform sampler2D gt_ss;
+uniform int ss;
+layout(location = 0) out vec4 out_color;
+layout(location = 1) out vec2 out_gt;
+void main() {
+    ivec2 base = ivec2(gl_FragCoord.xy) * ss;
+    vec4 acc = vec4(0.0);
+    for (int j = 0; j < ss; ++j)
+        for (int i = 0; i < ss; ++i) {
+            vec4 c = texelFetch(color_ss, base + ivec2(i, j), 0);
+            acc += vec4(c.rgb * c.a, c.a);
+        }
+    acc /= float(ss * ss);
+    out_color = vec4(acc.a > 0.0 ? acc.rgb / acc.a : vec3(0.0), acc.a);
+    out_gt = texelFetch(gt_ss, base + ivec2(ss / 2), 0).xy;
+}
+"""
+
 _LIGHTS = (np.array([0.45, 0.3, 0.84]), np.array([-0.6, -0.5, 0.3]))
 
 
@@ -140,6 +171,14 @@ class Rasterizer:
         self.gt = self.ctx.texture((width * s, height * s), 2, dtype="f4")
         self.depth_rb = self.ctx.depth_renderbuffer((width * s, height * s))
         self.fbo = self.ctx.framebuffer([self.color, self.gt], self.depth_rb)
+        self.resolve_prog = self.ctx.program(vertex_shader=_RESOLVE_VERT, fragment_shader=_RESOLVE_FRAG)
+        self.resolve_prog["color_ss"].value = 0
+        self.resolve_prog["gt_ss"].value = 1
+        self.resolve_prog["ss"].value = s
+        self.resolve_vao = self.ctx.vertex_array(self.resolve_prog, [])
+        self.out_color = self.ctx.texture((width, height), 4, dtype="f4")
+        self.out_gt = self.ctx.texture((width, height), 2, dtype="f4")
+        self.out_fbo = self.ctx.framebuffer([self.out_color, self.out_gt])
         self._vaos: dict = {}
 
     def __enter__(self) -> "Rasterizer":
@@ -155,6 +194,8 @@ class Rasterizer:
             vbo.release()
             ibo.release()
         self._vaos.clear()
+        for obj in (self.resolve_vao, self.resolve_prog, self.out_fbo, self.out_color, self.out_gt):
+            obj.release()
         self.fbo.release()
         self.color.release()
         self.gt.release()
@@ -203,15 +244,15 @@ class Rasterizer:
             p["tex_offset"].value = (0.137 + 0.31 * k, 0.271, 0.419)  # keeps pattern edges off flat faces
             p["obj_id"].value = float(ids[k] if ids is not None else k + 1)
             self._vao(obj).render(moderngl.TRIANGLES)
-        color = np.frombuffer(self.color.read(), dtype="f4").reshape(h * s, w * s, 4)[::-1]
-        gt = np.frombuffer(self.gt.read(), dtype="f4").reshape(h * s, w * s, 2)[::-1]
-        mean = color.reshape(h, s, w, s, 4).mean(axis=(1, 3), dtype=np.float64)
-        alpha = mean[..., 3:]
-        rgb = np.where(alpha > 0, mean[..., :3] / np.maximum(alpha, 1e-12), 0.0)
-        rgba = np.round(np.clip(np.concatenate([rgb, alpha], -1), 0, 1) * 255).astype(np.uint8)
-        centre = gt[s // 2::s, s // 2::s]
-        return Frame(rgba, np.ascontiguousarray(centre[..., 0], dtype=np.float32),
-                     np.round(centre[..., 1]).astype(np.uint8))
+        self.ctx.disable(moderngl.DEPTH_TEST)
+        self.out_fbo.use()
+        self.color.use(0)
+        self.gt.use(1)
+        self.resolve_vao.render(moderngl.TRIANGLES, vertices=3)
+        color = np.frombuffer(self.out_color.read(), dtype="f4").reshape(h, w, 4)[::-1]
+        gt = np.frombuffer(self.out_gt.read(), dtype="f4").reshape(h, w, 2)[::-1]
+        rgba = np.round(np.clip(color, 0.0, 1.0) * 255).astype(np.uint8)
+        return Frame(rgba, np.ascontiguousarray(gt[..., 0]), np.round(gt[..., 1]).astype(np.uint8))
 
 
 def model_matrix(obj: SceneObject) -> np.ndarray:
