@@ -1,0 +1,187 @@
+"""Feature teachers: the default teacher's contract and separation, the ONNX backend against torch,
+the PCA codec and the on-disk cache."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from core.errors import ModelNotFoundError, UserError
+from core.teachers.base import FeatureTeacher, l2_normalize
+from core.teachers.cache import build_feature_store
+from core.teachers.codec import PCACodec, sample_codes, upsample_codes
+from core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
+
+
+def toy_image(size: int = 64, seed: int = 0, shift: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Grey noisy background, a shaded red disc and a green striped square: (rgb uint8, labels)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float32)
+    img = np.full((size, size, 3), 0.6, np.float32) + rng.normal(0, 0.01, (size, size, 3))
+    lab = np.zeros((size, size), np.int32)
+    c = size * 0.3 + shift
+    disc = (yy - c) ** 2 + (xx - c) ** 2 < (size * 0.2) ** 2
+    shade = np.clip(1.0 - (xx - c + yy - c) / (size * 0.5), 0.35, 1.0)
+    img[disc] = (np.array([0.85, 0.15, 0.1]) * shade[..., None])[disc]
+    lab[disc] = 1
+    sq = (yy > size * 0.55) & (yy < size * 0.9) & (xx > size * 0.5 + shift) & (xx < size * 0.88 + shift)
+    stripes = np.where((xx // 3) % 2 == 0, 1.0, 0.45)
+    img[sq] = (np.array([0.15, 0.7, 0.2]) * stripes[..., None])[sq]
+    lab[sq] = 2
+    return (np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8), lab
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max(1, (a | b).sum()))
+
+
+def test_default_teacher_contract():
+    img, _ = toy_image()
+    t = DefaultFeatureTeacher()
+    assert isinstance(t, FeatureTeacher)
+    f = t(img)
+    assert f.shape == (64, 64, t.dim) and f.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(f, axis=-1), 1.0, atol=1e-5)
+    np.testing.assert_array_equal(f, DefaultFeatureTeacher()(img))  # deterministic
+    assert t.config() != DefaultFeatureTeacher(bandwidth=2.0).config()
+    rgba = np.concatenate([img, np.full((64, 64, 1), 255, np.uint8)], 2)
+    np.testing.assert_allclose(t(rgba), f, atol=1e-6)
+
+
+def test_default_teacher_rejects_bad_input():
+    with pytest.raises(UserError):
+        DefaultFeatureTeacher()(np.zeros((4, 4, 5), np.uint8))
+
+
+def test_cosine_is_a_gaussian_kernel_of_the_descriptor():
+    t = DefaultFeatureTeacher(dim=512)
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(200, 14)).astype(np.float32) * 0.5
+    y = x + rng.normal(size=x.shape).astype(np.float32) * 0.6
+    cos = np.sum(t.embed(x) * t.embed(y), -1)
+    ref = np.exp(-np.sum((x - y) ** 2, -1) / (2 * t.cfg.bandwidth ** 2))
+    assert np.abs(cos - ref).mean() < 0.05
+
+
+def test_patch_query_separates_objects_across_views():
+    t = DefaultFeatureTeacher()
+    views = [toy_image(seed=s, shift=3 * s) for s in range(3)]
+    feats = [t(im) for im, _ in views]
+    _, lab0 = views[0]
+    for obj in (1, 2):
+        ys, xs = np.nonzero(lab0 == obj)
+        cy, cx = int(np.median(ys)), int(np.median(xs))
+        q = l2_normalize(feats[0][cy - 2:cy + 3, cx - 2:cx + 3].reshape(-1, t.dim).mean(0))
+        for f, (_, lab) in zip(feats, views):
+            assert iou(f @ q > DEFAULT_THRESHOLD, lab == obj) > 0.8, obj
+
+
+def test_l2_normalize_zero_vector_is_zero_not_nan():
+    out = l2_normalize(np.zeros((3, 4)))
+    assert np.all(out == 0) and not np.isnan(out).any()
+
+
+def test_pca_codec_preserves_dot_products_and_round_trips():
+    rng = np.random.default_rng(0)
+    low = rng.normal(size=(5000, 6)) @ rng.normal(size=(6, 40))
+    f = l2_normalize(low + 0.001 * rng.normal(size=low.shape))
+    codec = PCACodec.fit(f, k=8)
+    assert codec.dims == 8 and codec.explained > 0.999
+    np.testing.assert_allclose(codec.basis.T @ codec.basis, np.eye(8), atol=1e-5)
+    c = codec.encode(f.reshape(100, 50, 40)).reshape(-1, 8).astype(np.float32)
+    gram_ref = f[:200] @ f[:200].T
+    np.testing.assert_allclose(c[:200] @ c[:200].T, gram_ref, atol=5e-3)
+    np.testing.assert_allclose(codec.decode(c), f, atol=5e-3)
+    assert PCACodec.fit(f, k=200).dims == 40  # never more than D (and never above 64)
+
+
+def test_sample_codes_matches_full_resolution_upsampling():
+    rng = np.random.default_rng(0)
+    codes = rng.normal(size=(6, 8, 3)).astype(np.float32)
+    full = upsample_codes(codes, (12, 16))
+    vv, uu = torch.meshgrid(torch.arange(12), torch.arange(16), indexing="ij")
+    got = sample_codes(torch.from_numpy(codes), (12, 16), uu.reshape(-1), vv.reshape(-1)).reshape(12, 16, 3)
+    np.testing.assert_allclose(got.numpy(), full, atol=1e-5)
+
+
+def test_feature_cache_computes_once_and_serves_targets(tmp_path):
+    imgs = [toy_image(seed=s, shift=s)[0] for s in range(3)]
+    calls = []
+
+    class Counting(DefaultFeatureTeacher):
+        def __call__(self, image):
+            calls.append(1)
+            return super().__call__(image)
+
+    t = Counting()
+    store = build_feature_store(imgs, t, tmp_path, dims=16, scale=0.5, fit_images=2)
+    first = len(calls)
+    assert first == 3  # fit images are encoded from the same pass
+    again = build_feature_store(imgs, t, tmp_path, dims=16, scale=0.5, fit_images=2)
+    assert len(calls) == first
+    for a, b in zip(store.codes, again.codes):
+        assert torch.equal(a, b)
+    assert store.codes[0].dtype == torch.float16 and store.codes[0].shape == (32, 32, 16)
+    img = torch.tensor([0, 2, 1, 2])
+    u, v = torch.tensor([0, 5, 63, 30]), torch.tensor([0, 7, 63, 40])
+    tg = store.gather(img, u, v)
+    assert tg.shape == (4, 16)
+    np.testing.assert_allclose(tg[1].numpy(), store.full(2)[7, 5].numpy(), atol=1e-6)
+    # the compressed code keeps the teacher's similarity structure
+    f = t(imgs[0])
+    proj = f @ store.codec.basis
+    assert np.abs(store.full(0).numpy() - proj).mean() < 0.02
+    other = build_feature_store(imgs, DefaultFeatureTeacher(bandwidth=2.0), tmp_path, dims=16)
+    assert other.files[0].parent.parent != store.files[0].parent.parent  # config keys the cache
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory):
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2, padding=1), torch.nn.ReLU(),
+                              torch.nn.Conv2d(8, 6, 3, padding=1)).eval()
+    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    torch.onnx.export(net, (torch.zeros(1, 3, 32, 32),), str(path), dynamo=False, input_names=["image"],
+                      output_names=["features"],
+                      dynamic_axes={"image": {2: "h", 3: "w"}, "features": {2: "fh", 3: "fw"}})
+    return net, path
+
+
+@pytest.mark.parametrize("input_size", [None, (24, 40)])
+def test_onnx_teacher_matches_torch(tiny_onnx, input_size):
+    from core.teachers.feature_onnx import OnnxFeatureTeacher
+
+    net, path = tiny_onnx
+    mean, std = (0.4, 0.5, 0.6), (0.2, 0.25, 0.3)
+    teacher = OnnxFeatureTeacher(path, input_size=input_size, mean=mean, std=std)
+    img, _ = toy_image(48)
+    img = img[:, :44].copy()
+    got = teacher(img)
+    x = torch.from_numpy(img).float().permute(2, 0, 1)[None] / 255.0
+    if input_size is not None:
+        x = torch.nn.functional.interpolate(x, size=input_size, mode="bilinear", align_corners=False)
+    x = (x - torch.tensor(mean)[:, None, None]) / torch.tensor(std)[:, None, None]
+    with torch.no_grad():
+        y = net(x)
+    y = torch.nn.functional.interpolate(y, size=img.shape[:2], mode="bilinear", align_corners=False)
+    ref = torch.nn.functional.normalize(y[0].permute(1, 2, 0), dim=-1, eps=1e-8).numpy()
+    assert got.shape == (48, 44, 6)
+    np.testing.assert_allclose(got, ref, atol=1e-5)
+
+
+def test_onnx_teacher_missing_or_invalid_model(tmp_path, monkeypatch):
+    from core.teachers.feature_onnx import ENV_FEATURE_MODEL, OnnxFeatureTeacher
+
+    monkeypatch.delenv(ENV_FEATURE_MODEL, raising=False)
+    with pytest.raises(ModelNotFoundError, match="--feature-model"):
+        OnnxFeatureTeacher(None)
+    with pytest.raises(ModelNotFoundError, match="missing.onnx"):
+        OnnxFeatureTeacher(tmp_path / "missing.onnx")
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(ModelNotFoundError, match="bad.onnx") as exc:
+        OnnxFeatureTeacher(bad)
+    assert ENV_FEATURE_MODEL in str(exc.value)
+    monkeypatch.setenv(ENV_FEATURE_MODEL, str(tmp_path / "env.onnx"))
+    with pytest.raises(ModelNotFoundError, match="env.onnx"):
+        OnnxFeatureTeacher()
