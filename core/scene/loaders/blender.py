@@ -1,7 +1,8 @@
 """NeRF-synthetic / Blender scenes: `transforms_{train,val,test}.json` next to the image folders.
 
 Poses are already OpenGL camera-to-world. RGBA images keep their alpha (compositing is the
-renderer's choice); a `background` colour and an `aabb` box in the JSON are kept on the scene.
+renderer's choice); a `background` colour, an `aabb` box, a `scene_kind` and a `depth_range` (what
+our generator writes) in the JSON are kept on the scene.
 """
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ from pathlib import Path
 
 from core.errors import SceneError
 from core.scene.loaders.common import wanted
-from core.scene.loaders.transforms_json import frames_of, load_frames, parse_aabb, parse_background, read_json
+from core.scene.loaders.transforms_json import (frames_of, load_frames, parse_aabb, parse_background,
+                                                parse_depth_range, parse_kind, read_json)
 from core.scene.scene import Scene
 
 SPLITS = ("train", "val", "test")
@@ -23,7 +25,7 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
     root = Path(root)
     if not (root / "transforms_train.json").is_file():
         raise SceneError("transforms_train.json not found (a NeRF-synthetic scene needs its train split)", root)
-    out, background, aabb = {}, None, None
+    out, background, aabb, kind, depth_range = {}, None, None, "bounded", None
     for split in SPLITS:
         path = root / f"transforms_{split}.json"
         if not path.is_file():
@@ -33,6 +35,8 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         if split == "train":
             background = parse_background(meta, path)
             aabb = parse_aabb(meta, path)
+            kind = parse_kind(meta, path)
+            depth_range = parse_depth_range(meta, path)
         if wanted(split, splits):
             out[split] = load_frames(meta, frames, list(range(len(frames))), root, path, downscale, same_size=True)
     extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
@@ -40,5 +44,10 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         extra["aabb"] = aabb
     has_alpha = any(im.shape[2] == 4 for sp in out.values() for im in sp.images[:1])
     extra["alpha"] = bool(has_alpha)
-    return Scene(root=root, format="blender", splits=out, background=background, extra=extra)
+    scene = Scene(root=root, format="blender", splits=out, background=background, kind=kind, extra=extra)
+    if depth_range is not None:
+        extra["depth_range"] = depth_range
+        if kind == "forward":
+            scene.near, scene.far = 0.9 * depth_range[0], 1.1 * depth_range[1]
+    return scene
 

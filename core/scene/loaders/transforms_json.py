@@ -78,6 +78,13 @@ def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
                      path, hint="check file_path or add the missing image")
 
 
+def _relative_name(p: Path, root: Path) -> str:
+    try:
+        return p.relative_to(root.resolve()).as_posix()
+    except ValueError:
+        return p.name
+
+
 def _number(meta: dict, frame: dict, key: str, path: Path, i: int):
     value = frame.get(key, meta.get(key))
     if value is None:
@@ -169,7 +176,7 @@ def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path
     def reader(k: int, p: Path) -> np.ndarray:
         return undistort_image(raw[k], cams[k])[0] if needs_undistortion(cams[k]) else raw[k]
 
-    names = [Path(str(frames[i]["file_path"])).name for i in idx]
+    names = [_relative_name(p, root) for p in paths]
     return load_split(cameras, paths, names, downscale, reader=reader)
 
 
@@ -201,3 +208,27 @@ def parse_aabb(meta: dict, path: Path):
         raise SceneError(f"'aabb' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max, got {value!r}",
                          path)
     return box
+
+
+def parse_kind(meta: dict, path: Path) -> str:
+    """The optional `scene_kind` ('bounded', 'forward', 'unbounded'); 'bounded' when absent."""
+    from core.scene.scene import SCENE_KINDS
+
+    kind = meta.get("scene_kind", "bounded")
+    if kind not in SCENE_KINDS:
+        raise SceneError(f"'scene_kind' must be one of {', '.join(SCENE_KINDS)}, got {kind!r}", path)
+    return kind
+
+
+def parse_depth_range(meta: dict, path: Path):
+    """The optional `depth_range` [near, far] of visible surfaces (z-depth, world units), or None."""
+    value = meta.get("depth_range")
+    if value is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise SceneError(f"'depth_range' must be [near, far], got {value!r}", path) from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo < hi):
+        return None  # a scene that sees no surface at all writes [0, 0]
+    return lo, hi
