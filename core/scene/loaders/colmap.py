@@ -53,6 +53,17 @@ def read_model(model: Path) -> pycolmap.Reconstruction:
     return rec
 
 
+def check_camera(cam: pycolmap.Camera, model: Path) -> pycolmap.Camera:
+    """A camera with a positive size, finite parameters and positive focal lengths, else a `SceneError`."""
+    params = np.asarray(cam.params, dtype=np.float64)
+    if cam.width < 1 or cam.height < 1 or not np.all(np.isfinite(params)) or \
+            min(cam.focal_length_x, cam.focal_length_y) <= 0:
+        raise SceneError(f"camera {cam.camera_id} is invalid ({cam.model_name} {cam.width}x{cam.height}, "
+                         f"params {params.tolist()}): the model is corrupt", model,
+                         hint="re-export the model or run structure-from-motion again")
+    return cam
+
+
 def _image_dir(root: Path, downscale: float) -> Path:
     if float(downscale).is_integer() and downscale > 1 and (root / f"images_{int(downscale)}").is_dir():
         return root / f"images_{int(downscale)}"
@@ -87,7 +98,7 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         c2w = check_pose(opencv_to_opengl(np.linalg.inv(w2c)), model, f"image '{im.name}'")
         paths.append(p)
         poses.append(c2w)
-        cams.append(rec.cameras[im.camera_id])
+        cams.append(check_camera(rec.cameras[im.camera_id], model))
     pins = np.asarray([undistorted_camera(c) for c in cams], dtype=np.float64)
     cameras = Cameras.create(np.stack(poses), pins[:, 0], pins[:, 1], pins[:, 2], pins[:, 3], pins[:, 4], pins[:, 5])
 
