@@ -19,7 +19,7 @@ def project_points(points: np.ndarray, cameras: Cameras, i: int, visible: np.nda
 
     Keeps points in front of the camera and inside the image. `visible` (indices into `points`, e.g. an
     SfM track) decides visibility when given; otherwise a z-buffer on a grid of `cell`-pixel cells
-    drops points more than `tolerance` (relative) behind the nearest point of their cell.
+    drops points more than `tolerance` (relative) behind the nearest point of their 3x3 cells.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if visible is not None:
@@ -37,11 +37,14 @@ def project_points(points: np.ndarray, cameras: Cameras, i: int, visible: np.nda
     keep = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v, z = u[keep], v[keep], z[keep]
     if visible is None and z.size:
-        gw = (w + cell - 1) // cell
-        key = (v // cell).astype(np.int64) * gw + (u // cell).astype(np.int64)
-        zmin = np.full(key.max() + 1, np.inf)
-        np.minimum.at(zmin, key, z)
-        ok = z <= zmin[key] * (1.0 + tolerance)
+        gw, gh = (w + cell - 1) // cell, (h + cell - 1) // cell
+        gx = np.clip((u // cell).astype(np.int64), 0, gw - 1)
+        gy = np.clip((v // cell).astype(np.int64), 0, gh - 1)
+        zmin = np.full((gh, gw), np.inf, np.float32)
+        np.minimum.at(zmin, (gy, gx), z.astype(np.float32))
+        # nearest depth over the 3x3 cells around: an occluder just across a cell border still counts
+        zmin = cv2.erode(np.where(np.isfinite(zmin), zmin, 3e38).astype(np.float32), np.ones((3, 3), np.uint8))
+        ok = z <= zmin[gy, gx] * (1.0 + tolerance)
         u, v, z = u[ok], v[ok], z[ok]
     return SparseDepth(u.astype(np.float32), v.astype(np.float32), z.astype(np.float32))
 
@@ -54,14 +57,17 @@ def depth_from_points(points: np.ndarray, cameras: Cameras, visibility: list | N
     return DepthPriors(priors, _sizes(cameras), source="sfm-points")
 
 
-def triangulate_known_poses(images: list[np.ndarray], cameras: Cameras, neighbours: int = 4,
+def triangulate_known_poses(images: list[np.ndarray], cameras: Cameras, neighbours: int = 6,
                             max_reproj: float = 1.0, min_angle_deg: float = 2.0, max_view_angle_deg: float = 60.0,
-                            ratio: float = 0.8, epipolar_px: float = 1.5, n_features: int = 2000,
-                            background: tuple[float, float, float] | None = (1.0, 1.0, 1.0)) -> DepthPriors:
+                            ratio: float = 0.9, epipolar_px: float = 1.5, n_features: int = 2000,
+                            background: tuple[float, float, float] | None = (1.0, 1.0, 1.0),
+                            min_support: int = 2, agree: float = 0.02) -> DepthPriors:
     """Sparse depth for posed images without points: SIFT matches between each view and its nearest
     views, filtered by the ratio test and the epipolar constraint of the known poses, triangulated
     (DLT), kept when in front of both cameras, reprojecting within `max_reproj` px and seen under a
-    triangulation angle of at least `min_angle_deg`. Each keypoint's depth is the median over pairs.
+    triangulation angle of at least `min_angle_deg`. A keypoint is kept when at least `min_support`
+    pairs agree on its depth within `agree` (relative): repeated textures (checker floors) give
+    epipolar-consistent false matches, and those rarely agree across pairs. Its depth is their median.
     """
     n = len(images)
     sift = cv2.SIFT_create(nfeatures=n_features)
@@ -110,8 +116,15 @@ def triangulate_known_poses(images: list[np.ndarray], cameras: Cameras, neighbou
                 obs[j].setdefault(int(b), []).append(float(zb))
     priors = []
     for i in range(n):
-        idx = np.array(sorted(obs[i]), dtype=np.int64)
-        z = np.array([np.median(obs[i][k]) for k in idx], np.float32)
+        idx, z = [], []
+        for k, zs in sorted(obs[i].items()):
+            zs = np.asarray(zs)
+            m = np.median(zs)
+            close = zs[np.abs(zs - m) <= agree * m]
+            if close.size >= min_support:
+                idx.append(k)
+                z.append(np.median(close))
+        idx, z = np.array(idx, dtype=np.int64), np.array(z, np.float32)
         uv = kps[i][idx] if idx.size else np.zeros((0, 2))
         priors.append(SparseDepth(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32), z))
     return DepthPriors(priors, _sizes(cameras), source="triangulated")
