@@ -355,3 +355,34 @@ def test_synthetic_scene_loads_with_its_cameras_and_depth(scene_factory):
 
     assert reprojection_error(0.0) < 0.05
     assert reprojection_error(0.5) > 0.2  # a half-pixel convention error would be caught
+
+
+# ---------------------------------------------------------------- repaint-nerf info
+
+
+def test_info_command_reports_the_scene(scene_factory, capsys, tmp_path):
+    from app.cli import main
+
+    pytest.importorskip("core.synth.generate")
+    root = scene_factory("demo", size=32, views=6, seed=0, test_views=2)
+    assert main(["info", str(root), "--json", "--downscale", "2"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    meta = json.loads((root / "transforms_train.json").read_text())
+    assert info["format"] == "blender" and info["kind"] == meta.get("scene_kind", "bounded")
+    assert info["splits"] == {"train": {"images": 6, "size": [16, 16]}, "test": {"images": 2, "size": [16, 16]}}
+    assert math.isclose(info["intrinsics"]["fx"], meta["fl_x"] / 2, rel_tol=1e-6)
+    assert info["intrinsics"]["vary"] is False
+    assert info["depth_gt"]["present"] and info["depth_gt"]["files"] == 8
+    assert info["bounds_world"]["rule"] == "aabb" and np.allclose(info["bounds_world"]["region"], meta["aabb"])
+    assert info["points"] == 0
+    assert main(["info", str(root)]) == 0
+    text = capsys.readouterr().out
+    for line in ("format          blender", "split train     6 images, 32x32", "depth gt        yes", "normalisation"):
+        assert line in text
+    # per-frame intrinsics are reported as varying
+    write_blender(tmp_path, counts={"train": 2}, angle=False)
+    _meta = json.loads((tmp_path / "transforms_train.json").read_text())
+    _meta["frames"][1]["fl_x"] = 40.0
+    (tmp_path / "transforms_train.json").write_text(json.dumps(_meta))
+    assert main(["info", str(tmp_path), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["intrinsics"]["vary"] is True

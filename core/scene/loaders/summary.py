@@ -74,8 +74,12 @@ def format_summary(info: dict) -> str:
     lines.append(f"normalisation   x_field = {f(n['scale'])} * (x_world - [{', '.join(map(f, n['center']))}])")
     lines.append(f"near / far      {f(info['near'])} / {f(info['far'])} (world units)")
     bg = info["background"]
-    lines.append("background      " + ("none given (random in training, white for evaluation)" if bg is None
-                                       else f"[{', '.join(map(f, bg))}]") + (", images have alpha" if info["alpha"] else ""))
+    if bg is not None:
+        lines.append(f"background      [{', '.join(map(f, bg))}]" + (", images have alpha" if info["alpha"] else ""))
+    elif info["alpha"]:
+        lines.append("background      none given, images have alpha (random in training, white for evaluation)")
+    else:
+        lines.append("background      not needed (opaque images)")
     lines.append(f"sparse points   {info['points'] or 'none'}")
     d = info["depth_gt"]
     lines.append(f"depth gt        {'yes, ' + str(d['files']) + ' files in ' + d['folder'] if d['present'] else 'none'}")
