@@ -189,3 +189,18 @@ def test_clip_preprocess_square_is_plain_normalisation():
     ref = (img - torch.tensor(mean).view(1, 3, 1, 1)) / torch.tensor(std).view(1, 3, 1, 1)
     torch.testing.assert_close(clip_preprocess(img, 32, mean, std), ref)
     assert clip_preprocess(torch.rand(1, 3, 20, 60), 32, mean, std).shape == (1, 3, 32, 32)
+
+
+def test_fp16_latents_gradient_goes_through_grad_scaler():
+    """The official fp16 pitfall: the SDS gradient must be scaled and unscaled like any loss."""
+    w = torch.nn.Parameter(torch.randn(1, 4, 8, 8))  # fp32 master weights, fp16 activations (as under AMP)
+    z = w.half()
+    g = torch.randn(1, 4, 8, 8)
+    opt = torch.optim.SGD([w], lr=0.0)
+    scaler = torch.amp.GradScaler("cpu", init_scale=1024.0)
+    out = distillation_loss(z, g, t=100)
+    assert out["loss"].dtype == torch.float32
+    scaler.scale(out["loss"]).backward()
+    torch.testing.assert_close(w.grad, 1024.0 * g, rtol=2e-3, atol=2e-3)
+    scaler.unscale_(opt)
+    torch.testing.assert_close(w.grad, g, rtol=2e-3, atol=2e-3)

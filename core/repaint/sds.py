@@ -49,7 +49,7 @@ class SDSGuidance:
         res = sd.resolution
         x = rgb if rgb.shape[-2:] == (res, res) else F.interpolate(rgb, (res, res), mode="bilinear",
                                                                    align_corners=False)
-        latents = sd.encode_images(x)
+        latents = sd.encode_images(x, self.generator)
         t = self.sampler.sample()
         with torch.no_grad():
             noise = self._noise(latents)
