@@ -36,6 +36,21 @@ def exif_orientation(path: Path) -> int:
     return value if 1 <= value <= 8 else 1
 
 
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image as `read_image` returns it, from the file header when possible."""
+    path = Path(path)
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            w, h = im.size
+            orientation = int(im.getexif().get(_EXIF_ORIENTATION, 1))
+        return (h, w) if orientation in (5, 6, 7, 8) else (w, h)
+    except Exception:  # noqa: BLE001 - PIL cannot parse it: decode fully (raises a SceneError on bad files)
+        img = read_image(path)
+        return img.shape[1], img.shape[0]
+
+
 def apply_orientation(img: np.ndarray, orientation: int) -> np.ndarray:
     """Rotate/flip pixels so an image with EXIF `orientation` displays upright (tag value -> upright)."""
     ops = {

@@ -15,7 +15,7 @@ import numpy as np
 from core.errors import SceneError
 from core.scene.cameras import Cameras
 from core.scene.loaders.common import check_pose, load_split
-from core.scene.loaders.images import IMAGE_EXTS, read_image
+from core.scene.loaders.images import IMAGE_EXTS, image_size, read_image
 from core.scene.loaders.undistort import make_camera, needs_undistortion, undistort_image, undistorted_camera
 from core.scene.scene import SceneSplit
 
@@ -143,38 +143,35 @@ def frame_intrinsics(meta: dict, frame: dict, path: Path, i: int, image_size: tu
     return cam, undistorted_camera(cam)
 
 
-def image_size(p: Path) -> tuple[int, int]:
-    """(width, height) of an image file after EXIF orientation (decodes it; errors name the file)."""
-    img = read_image(p)
-    return img.shape[1], img.shape[0]
-
-
 def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path: Path, downscale: float,
                 same_size: bool) -> SceneSplit:
     """Build one split from frames `idx` of a transforms file: validated poses, intrinsics, images.
 
-    `same_size` (Blender) makes images of different sizes within the split a `SceneError`.
+    `same_size` (Blender) makes images of different sizes within the split a `SceneError`. Sizes come
+    from the file headers; pixels are decoded one image at a time (full-size images are never all held).
     """
     paths = [resolve_image(root, frames[i]["file_path"], path, i) for i in idx]
     poses = [frame_pose(frames[i], path, i) for i in idx]
-    raw = [read_image(p) for p in paths]
-    if same_size and raw:
-        first = raw[0].shape[:2]
-        for p, im in zip(paths, raw):
-            if im.shape[:2] != first:
-                raise SceneError(f"images of one split differ in size: {paths[0].name} is {first[1]}x{first[0]}, "
-                                 f"{p.name} is {im.shape[1]}x{im.shape[0]}", path,
-                                 hint="resize all images of a split to one size")
+    sizes = [image_size(p) for p in paths]
+    if same_size:
+        for p, size in zip(paths, sizes):
+            if size != sizes[0]:
+                raise SceneError(f"images of one split differ in size: {paths[0].name} is {sizes[0][0]}x{sizes[0][1]}, "
+                                 f"{p.name} is {size[0]}x{size[1]}", path, hint="resize all images of a split to one size")
     cams, pins = [], []
     for k, i in enumerate(idx):
-        cam, pin = frame_intrinsics(meta, frames[i], path, i, (raw[k].shape[1], raw[k].shape[0]))
+        cam, pin = frame_intrinsics(meta, frames[i], path, i, sizes[k])
         cams.append(cam)
         pins.append(pin)
     pin = np.asarray(pins, dtype=np.float64)
     cameras = Cameras.create(np.stack(poses), pin[:, 0], pin[:, 1], pin[:, 2], pin[:, 3], pin[:, 4], pin[:, 5])
 
     def reader(k: int, p: Path) -> np.ndarray:
-        return undistort_image(raw[k], cams[k])[0] if needs_undistortion(cams[k]) else raw[k]
+        img = read_image(p)
+        if (img.shape[1], img.shape[0]) != sizes[k]:
+            raise SceneError(f"decoded size {img.shape[1]}x{img.shape[0]} differs from the header's "
+                             f"{sizes[k][0]}x{sizes[k][1]}", p)
+        return undistort_image(img, cams[k])[0] if needs_undistortion(cams[k]) else img
 
     names = [_relative_name(p, root) for p in paths]
     return load_split(cameras, paths, names, downscale, reader=reader)
