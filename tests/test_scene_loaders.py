@@ -126,7 +126,9 @@ def test_nerfstudio_distortion_is_undistorted(tmp_path):
     # Distorted image whose colour is a function of the ideal (undistorted) normalised coordinates.
     vv, uu = np.mgrid[0:h, 0:w] + 0.5
     xy = cam.cam_from_img(np.stack([uu.ravel(), vv.ravel()], 1)).reshape(h, w, 2)
-    colour = lambda xy: np.stack([128 + 100 * xy[..., 0], 128 + 100 * xy[..., 1], np.full(xy.shape[:2], 50.0)], -1)  # noqa: E731
+    def colour(xy):
+        return np.stack([128 + 100 * xy[..., 0], 128 + 100 * xy[..., 1], np.full(xy.shape[:2], 50.0)], -1)
+
     write_image(tmp_path / "images" / "a.png", np.clip(colour(xy) + 0.5, 0, 255).astype(np.uint8))
     meta = {"fl_x": 30.0, "fl_y": 31.0, "cx": 20.0, "cy": 15.0, "w": w, "h": h, "k1": -0.2, "k2": 0.05,
             "p1": 0.001, "p2": -0.002, "camera_model": "OPENCV",
@@ -263,7 +265,8 @@ def test_image_reading_conversions(tmp_path):
     cv2.imwrite(str(tmp_path / "g16.png"), g16)
     img = read_image(tmp_path / "g16.png")
     assert img.shape == (12, 10, 3) and img.dtype == np.uint8
-    assert np.array_equal(img[..., 0], np.round(g16 / 257.0).astype(np.uint8)) and np.array_equal(img[..., 0], img[..., 2])
+    assert np.array_equal(img[..., 0], np.round(g16 / 257.0).astype(np.uint8))
+    assert np.array_equal(img[..., 0], img[..., 2])
     rgb = pattern(8, 6, 1)
     write_image(tmp_path / "c.png", rgb)
     assert np.array_equal(read_image(tmp_path / "c.png"), rgb)
@@ -296,7 +299,8 @@ def test_object_centric_normalisation_finds_the_centre(tmp_path):
 
     cams = Cameras.create(poses, 30.0, 30.0, 12.0, 12.0, 24, 24)
     scene = Scene(root=tmp_path, format="blender",
-                  splits={"train": SceneSplit(cams, [np.zeros((24, 24, 3), np.uint8)] * 12, [str(i) for i in range(12)])})
+                  splits={"train": SceneSplit(cams, [np.zeros((24, 24, 3), np.uint8)] * 12,
+                                              [str(i) for i in range(12)])})
     norm = normalize_scene(scene)
     assert scene.extra["normalization"]["rule"] == "cameras"
     assert np.allclose(norm.center, target, atol=1e-6)

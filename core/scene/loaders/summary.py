@@ -67,7 +67,8 @@ def format_summary(info: dict) -> str:
     b = info["bounds_world"]
     if b["region"]:
         lo, hi = b["region"]
-        lines.append(f"scene bounds    [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world, from {b['rule']})")
+        lines.append(f"scene bounds    [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] "
+                     f"(world, from {b['rule']})")
     lo, hi = b["field_cube"]
     n = info["normalization"]
     lines.append(f"field cube      [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world)")
@@ -82,5 +83,6 @@ def format_summary(info: dict) -> str:
         lines.append("background      not needed (opaque images)")
     lines.append(f"sparse points   {info['points'] or 'none'}")
     d = info["depth_gt"]
-    lines.append(f"depth gt        {'yes, ' + str(d['files']) + ' files in ' + d['folder'] if d['present'] else 'none'}")
+    depth = f"yes, {d['files']} files in {d['folder']}" if d["present"] else "none"
+    lines.append(f"depth gt        {depth}")
     return "\n".join(lines)

@@ -156,8 +156,9 @@ def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path
     if same_size:
         for p, size in zip(paths, sizes):
             if size != sizes[0]:
-                raise SceneError(f"images of one split differ in size: {paths[0].name} is {sizes[0][0]}x{sizes[0][1]}, "
-                                 f"{p.name} is {size[0]}x{size[1]}", path, hint="resize all images of a split to one size")
+                raise SceneError(f"images of one split differ in size: {paths[0].name} is "
+                                 f"{sizes[0][0]}x{sizes[0][1]}, {p.name} is {size[0]}x{size[1]}", path,
+                                 hint="resize all images of a split to one size")
     cams, pins = [], []
     for k, i in enumerate(idx):
         cam, pin = frame_intrinsics(meta, frames[i], path, i, sizes[k])
