@@ -64,6 +64,11 @@ def check_camera(cam: pycolmap.Camera, model: Path) -> pycolmap.Camera:
     return cam
 
 
+def _registered(im) -> bool:
+    flag = getattr(im, "has_pose", None)
+    return bool(flag if flag is not None else getattr(im, "registered", True))
+
+
 def _image_dir(root: Path, downscale: float) -> Path:
     if float(downscale).is_integer() and downscale > 1 and (root / f"images_{int(downscale)}").is_dir():
         return root / f"images_{int(downscale)}"
@@ -79,7 +84,7 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
                          "sparse/)", root / "sparse" if (root / "sparse").exists() else root,
                          hint="run structure-from-motion (`repaint-nerf sfm`) or point to the model folder")
     rec = read_model(model)
-    images = sorted((im for im in rec.images.values() if im.has_pose), key=lambda im: im.name)
+    images = sorted((im for im in rec.images.values() if _registered(im)), key=lambda im: im.name)
     if not images:
         raise SceneError("the COLMAP model has no registered images", model)
     img_dir = _image_dir(root, downscale)
@@ -92,7 +97,8 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
             raise SceneError(f"image '{im.name}' of the COLMAP model not found in {img_dir}", p,
                              hint="put the images the model was built from in images/")
         w2c = np.eye(4)
-        w2c[:3, :4] = im.cam_from_world().matrix()
+        cfw = im.cam_from_world  # a method in pycolmap 4, a property in 3.x
+        w2c[:3, :4] = (cfw() if callable(cfw) else cfw).matrix()
         if not np.all(np.isfinite(w2c)):
             raise SceneError(f"image '{im.name}': the pose contains NaN or infinite values", model)
         c2w = check_pose(opencv_to_opengl(np.linalg.inv(w2c)), model, f"image '{im.name}'")
