@@ -140,9 +140,10 @@ def _thin(rng: np.random.Generator) -> SceneSpec:
 
 def _forward(rng: np.random.Generator) -> SceneSpec:
     objs = [
-        SceneObject("wall", "box", {"sx": 12.0, "sy": 0.2, "sz": 8.0}, (0.0, 2.1, 3.0), LIGHT, "noise", 2.5,
+        # Just large enough to fill every view of the rig below (the aabb stays tight).
+        SceneObject("wall", "box", {"sx": 8.0, "sy": 0.2, "sz": 5.0}, (0.0, 2.1, 1.5), LIGHT, "noise", 2.5,
                     color2=(0.45, 0.42, 0.5)),
-        SceneObject("floor", "box", {"sx": 12.0, "sy": 9.0, "sz": 0.2}, (0.0, -2.5, -0.1), GREY, "checker", 2.0,
+        SceneObject("floor", "box", {"sx": 8.0, "sy": 5.0, "sz": 0.2}, (0.0, -0.3, -0.1), GREY, "checker", 2.0,
                     color2=(0.3, 0.3, 0.33)),
         *_spread_out(_centre_objects()),
     ]
