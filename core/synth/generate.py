@@ -79,7 +79,7 @@ def make_scene(preset: str, out: Path, size: int = 128, views: int = 100, seed: 
     out.mkdir(parents=True, exist_ok=True)
 
     rng = np.random.default_rng(seed)
-    spec = build_spec(preset, rng)
+    spec = build_spec(preset)
     poses = {"train": spec.rig(views, rng), "test": spec.rig(test_views, rng)}
     fx = fy = 0.5 * size / np.tan(0.5 * spec.camera_angle_x)
     cx = cy = 0.5 * size

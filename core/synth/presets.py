@@ -74,6 +74,7 @@ class SceneSpec:
         return out
 
     def edited_id(self) -> int:
+        """Object id (1-based position in `objects`) of the edited object."""
         return 1 + [o.name for o in self.objects].index(self.edit.target)
 
 
@@ -106,14 +107,14 @@ def _spread_out(objs: list[SceneObject]) -> list[SceneObject]:
     return [replace(o, position=(*xy[o.name], o.position[2])) for o in objs]
 
 
-def _demo(rng: np.random.Generator) -> SceneSpec:
+def _demo() -> SceneSpec:
     return SceneSpec(
         "demo", "bounded", [_floor(), *_centre_objects()],
         Edit("recolor", "sphere", color=BLUE, description="the red sphere becomes blue"),
         rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.3)), 0.75, opaque=False)
 
 
-def _similar(rng: np.random.Generator) -> SceneSpec:
+def _similar() -> SceneSpec:
     reds = [(0.85, 0.2, 0.15), (0.8, 0.25, 0.2), (0.88, 0.22, 0.2), (0.82, 0.18, 0.17)]
     textures = ["checker", "stripes", "noise", "plain"]
     objs = [replace(o, color=c, texture=t, color2=None) for o, c, t in zip(_centre_objects(), reds, textures)]
@@ -123,7 +124,7 @@ def _similar(rng: np.random.Generator) -> SceneSpec:
         rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.3)), 0.75, opaque=False)
 
 
-def _thin(rng: np.random.Generator) -> SceneSpec:
+def _thin() -> SceneSpec:
     objs = [
         _floor(),
         SceneObject("pole", "cylinder", {"radius": 0.03, "height": 1.4}, (0.2, 0.1, 0.7), RED, "stripes", 8.0),
@@ -138,7 +139,7 @@ def _thin(rng: np.random.Generator) -> SceneSpec:
         rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.4)), 0.75, opaque=False)
 
 
-def _forward(rng: np.random.Generator) -> SceneSpec:
+def _forward() -> SceneSpec:
     objs = [
         # Just large enough to fill every view of the rig below (the aabb stays tight).
         SceneObject("wall", "box", {"sx": 8.0, "sy": 0.2, "sz": 5.0}, (0.0, 2.1, 1.5), LIGHT, "noise", 2.5,
@@ -154,7 +155,7 @@ def _forward(rng: np.random.Generator) -> SceneSpec:
         opaque=True)
 
 
-def _room360(rng: np.random.Generator) -> SceneSpec:
+def _room360() -> SceneSpec:
     # The walls reach past the floor and ceiling discs so the room is closed without slivers.
     objs = [
         SceneObject("floor", "disc", {"radius": 5.05}, (0.0, 0.0, 0.0), LIGHT, "checker", 2.0,
@@ -170,8 +171,8 @@ def _room360(rng: np.random.Generator) -> SceneSpec:
         rigs.ring(radius=2.6, heights=(0.9, 1.8), target=(0.0, 0.0, 0.35)), 1.0, opaque=True)
 
 
-def _replace(rng: np.random.Generator) -> SceneSpec:
-    spec = _demo(rng)
+def _replace() -> SceneSpec:
+    spec = _demo()
     cube = next(o for o in spec.objects if o.name == "cube")
     cone = replace(cube, name="cone", mesh="cone", params={"radius": 0.36, "height": 0.8},
                    position=(cube.position[0], cube.position[1], 0.4))
@@ -181,7 +182,7 @@ def _replace(rng: np.random.Generator) -> SceneSpec:
     return spec
 
 
-PRESETS: dict[str, tuple[str, Callable[[np.random.Generator], SceneSpec]]] = {
+PRESETS: dict[str, tuple[str, Callable[[], SceneSpec]]] = {
     "demo": ("four distinct-coloured primitives on a checker floor, 360 views, transparent background", _demo),
     "similar": ("four similar red primitives told apart by texture (checker, stripes, noise, plain)", _similar),
     "thin": ("a thin pole and a small ball beside larger objects", _thin),
@@ -191,6 +192,6 @@ PRESETS: dict[str, tuple[str, Callable[[np.random.Generator], SceneSpec]]] = {
 }
 
 
-def build_spec(name: str, rng: np.random.Generator) -> SceneSpec:
-    """The scene of preset `name` (a key of PRESETS)."""
-    return PRESETS[name][1](rng)
+def build_spec(name: str) -> SceneSpec:
+    """The scene of preset `name` (a key of PRESETS); the layout is fixed, the seed only moves the cameras."""
+    return PRESETS[name][1]()

@@ -30,6 +30,7 @@ def write_depth(path: Path, depth: np.ndarray) -> None:
 
 
 def write_json(path: Path, data: dict) -> None:
+    """Write `data` as indented JSON, creating the parent folder."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
 
