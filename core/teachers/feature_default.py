@@ -22,7 +22,7 @@ class DefaultTeacherConfig:
     """Weights and scales of the default teacher; the cache is keyed by these values."""
 
     dim: int = 64                  # output dimension (2 x number of random frequencies)
-    bandwidth: float = 1.5         # kernel width h in descriptor units
+    bandwidth: float = 1.75        # kernel width h in descriptor units
     seed: int = 0                  # random frequencies are fixed by this seed
     ref_size: int = 128            # blur scales are in pixels of an image whose short side is this
     colour_sigmas: tuple = (0.7, 2.0)
@@ -32,9 +32,9 @@ class DefaultTeacherConfig:
     texture_scales: tuple = (0.7, 1.4)
     w_texture: float = 5.0         # per unit of log-intensity band amplitude (Weber contrast)
     w_colour_texture: float = 2.0  # per unit of chromaticity band amplitude (two-colour patterns)
-    superpixel: float = 5.0        # SLIC region size in reference pixels (0 = no pooling)
+    superpixel: float = 8.0        # SLIC region size in reference pixels (0 = no pooling)
     slic_ruler: float = 10.0       # SLIC compactness on the Lab image
-    pooled_weight: float = 0.7     # mix of region-pooled and per-pixel descriptor
+    pooled_weight: float = 0.9     # mix of region-pooled and per-pixel descriptor
 
 
 class DefaultFeatureTeacher:
