@@ -1,0 +1,1 @@
+"""The one renderer: occupancy grid, ray marching with empty-space skipping, stable compositing."""

@@ -1,0 +1,212 @@
+"""Occupancy grid for empty-space skipping, with instant-ngp's update rules.
+
+Each cascade c is a resolution^3 grid over the cube [-bound*2^c, bound*2^c]^3 holding a decayed
+maximum of sampled density (`density`) and a boolean `occupied` field derived from it by a threshold.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.device import get_device
+from core.errors import UserError
+
+MIN_OPTICAL_THICKNESS = 0.01  # instant-ngp: a cell is empty when sigma * min_step stays below this
+
+
+def default_step(bound: float, max_samples: int) -> float:
+    """Marching step so that `max_samples` steps cross the diagonal of [-bound, bound]^3 (instant-ngp: 1024)."""
+    return 2.0 * math.sqrt(3.0) * bound / max_samples
+
+
+class OccupancyGrid:
+    """Per-cascade density grid (float) and occupancy (bool), updated every `update_every` steps."""
+
+    def __init__(self, resolution: int = 128, cascades: int = 1, bound: float = 1.0, device=None,
+                 min_step: float | None = None, update_every: int = 16, warmup_steps: int = 256,
+                 decay: float = 0.95, eval_chunk: int = 1 << 18):
+        if resolution < 1 or cascades < 1 or bound <= 0:
+            raise UserError(f"occupancy grid needs resolution >= 1, cascades >= 1 and bound > 0 "
+                            f"(got {resolution}, {cascades}, {bound})")
+        self.resolution = int(resolution)
+        self.cascades = int(cascades)
+        self.bound = float(bound)
+        self.device = torch.device(device) if device is not None else get_device()
+        self.min_step = float(min_step) if min_step else default_step(self.bound, 1024)
+        self.update_every = int(update_every)
+        self.warmup_steps = int(warmup_steps)
+        self.decay = float(decay)
+        self.eval_chunk = int(eval_chunk)
+        n = self.resolution ** 3
+        self.density = torch.zeros(self.cascades, n, device=self.device)
+        self.occupied = torch.ones(self.cascades, n, dtype=torch.bool, device=self.device)
+        self.mean_density = 0.0
+        self._version = 0
+        self._dilated: dict[tuple, Tensor] = {}
+
+    # --- geometry ---------------------------------------------------------------------------
+    def cascade_extent(self, c: int) -> float:
+        """Half-size of cascade c's cube."""
+        return self.bound * 2.0 ** c
+
+    @property
+    def extent(self) -> float:
+        """Half-size of the outermost cascade: rays are marched inside [-extent, extent]^3."""
+        return self.cascade_extent(self.cascades - 1)
+
+    def _cell_index(self, x: Tensor, c: int) -> Tensor:
+        """Flat cell index (N,) of points (N,3) in cascade c, clamped to the grid."""
+        e = self.cascade_extent(c)
+        r = self.resolution
+        ijk = ((x + e) * (r / (2.0 * e))).long().clamp_(0, r - 1)  # truncation == floor after the clamp
+        return ijk @ torch.tensor([r * r, r, 1], device=x.device)
+
+    def occupied_bbox(self) -> tuple[Tensor, Tensor]:
+        """Axis-aligned box (lo, hi) around all occupied cells (cell bounds); a point when nothing is occupied."""
+        key = (self._version, "bbox")
+        if key not in self._dilated:
+            r = self.resolution
+            lo = torch.full((3,), math.inf, device=self.device)
+            hi = torch.full((3,), -math.inf, device=self.device)
+            for c in range(self.cascades):
+                occ = self.occupied[c].view(r, r, r)
+                if not bool(occ.any()):
+                    continue
+                e = self.cascade_extent(c)
+                for a in range(3):
+                    other = tuple(b for b in range(3) if b != a)
+                    idx = occ.any(dim=other[1]).any(dim=other[0]).nonzero(as_tuple=True)[0]
+                    lo[a] = min(float(lo[a]), float(idx[0]) * 2 * e / r - e)
+                    hi[a] = max(float(hi[a]), float(idx[-1] + 1) * 2 * e / r - e)
+            if not bool(torch.isfinite(lo).all()):
+                lo, hi = torch.zeros(3, device=self.device), torch.zeros(3, device=self.device)
+            self._dilated[key] = (lo, hi)
+        return self._dilated[key]
+
+    def cascade_of(self, x: Tensor) -> Tensor:
+        """Smallest cascade whose cube holds each point (N,) long, clamped to the outermost."""
+        if self.cascades == 1:
+            return torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+        m = x.abs().amax(dim=-1).clamp_min(1e-30) / self.bound
+        return torch.ceil(torch.log2(m)).clamp(0, self.cascades - 1).long()
+
+    def is_occupied(self, x: Tensor) -> Tensor:
+        """Occupancy of the cell holding each point (N,3) -> (N,) bool; points outside every cascade are empty."""
+        x = x.to(self.device)
+        c = self.cascade_of(x)
+        inside = (x.abs().amax(dim=-1) <= self.extent)
+        if self.cascades == 1:
+            return self.occupied[0][self._cell_index(x, 0)] & inside
+        out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for ci in range(self.cascades):
+            sel = (c == ci).nonzero(as_tuple=True)[0]
+            if sel.numel():
+                out[sel] = self.occupied[ci][self._cell_index(x[sel], ci)]
+        return out & inside
+
+    def dilated(self, c: int, radius: int) -> Tensor:
+        """Cascade c's occupancy dilated by `radius` cells in each axis (box max filter), cached per update."""
+        key = (self._version, c, radius)
+        if key not in self._dilated:
+            self._dilated = {k: v for k, v in self._dilated.items() if k[0] == self._version}
+            r = self.resolution
+            g = self.occupied[c].view(1, 1, r, r, r).float()
+            if radius > 0:
+                k = 2 * radius + 1
+                for ks in ((k, 1, 1), (1, k, 1), (1, 1, k)):  # separable box max
+                    pad = tuple(s // 2 for s in ks)
+                    g = F.max_pool3d(g, ks, stride=1, padding=pad)
+            self._dilated[key] = g.view(-1) > 0
+        return self._dilated[key]
+
+    def occupied_near(self, x: Tensor, half: float) -> Tensor:
+        """Whether any occupied cell lies within `half` (per axis) of each point (N,3): a conservative test
+        for a ray segment of half-length `half` centred at x."""
+        if self.cascades == 1:
+            radius = int(math.ceil(half * self.resolution / (2.0 * self.bound) - 1e-9))
+            return self.dilated(0, radius)[self._cell_index(x, 0)]
+        out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        m = x.abs().amax(dim=-1)
+        for c in range(self.cascades):
+            e = self.cascade_extent(c)
+            radius = int(math.ceil(half * self.resolution / (2.0 * e) - 1e-9))
+            near_box = m <= e + half
+            if c > 0:  # points well inside the inner cascade use its finer cells only
+                near_box &= m + half > self.cascade_extent(c - 1)
+            occ = self.dilated(c, radius)[self._cell_index(x, c)]
+            out |= near_box & occ
+        return out
+
+    # --- updates ----------------------------------------------------------------------------
+    def mark_all(self) -> None:
+        """Mark every cell occupied (before training, or to render without skipping)."""
+        self.occupied.fill_(True)
+        self._version += 1
+
+    def occupied_fraction(self) -> float:
+        """Fraction of occupied cells over all cascades."""
+        return float(self.occupied.float().mean())
+
+    def threshold(self) -> float:
+        """Density above which a cell is occupied: min(mean density of cascade 0, 0.01 / min_step)."""
+        return min(self.mean_density, MIN_OPTICAL_THICKNESS / self.min_step)
+
+    def _cell_points(self, idx: Tensor, c: int) -> Tensor:
+        r = self.resolution
+        ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], dim=-1).float()
+        ijk += torch.rand_like(ijk)  # a jittered point inside each cell
+        e = self.cascade_extent(c)
+        return ijk * (2.0 * e / r) - e
+
+    @torch.no_grad()
+    def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:
+        """Call every training step; acts every `update_every` steps: evaluate density at jittered cell points
+        (all cells during warm-up, else 1/4 uniform + 1/4 occupied), new = max(decay * old, sampled)."""
+        if step % self.update_every != 0:
+            return
+        n = self.resolution ** 3
+        fresh = torch.zeros_like(self.density)
+        for c in range(self.cascades):
+            if step < self.warmup_steps:
+                idx = torch.arange(n, device=self.device)
+            else:
+                idx = torch.randint(0, n, (n // 4,), device=self.device)
+                occ = self.occupied[c].nonzero(as_tuple=True)[0]
+                if occ.numel():
+                    idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (n // 4,), device=self.device)]])
+            for s in range(0, idx.numel(), self.eval_chunk):
+                part = idx[s:s + self.eval_chunk]
+                sigma = density_fn(self._cell_points(part, c)).reshape(-1).float()
+                sigma = torch.nan_to_num(sigma, nan=0.0, posinf=3.0e38).clamp_min(0.0).to(self.device)
+                fresh[c].scatter_reduce_(0, part, sigma, reduce="amax")
+        self.density = torch.maximum(self.density * self.decay, fresh)
+        self.mean_density = float(self.density[0].mean())
+        self.occupied = self.density > self.threshold()
+        self._version += 1
+
+    # --- checkpoints ------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Tensor]:
+        """Tensors for a checkpoint (safetensors-compatible)."""
+        return {"density": self.density.detach().cpu().clone(),
+                "occupied": self.occupied.detach().cpu().clone(),
+                "mean_density": torch.tensor([self.mean_density], dtype=torch.float64)}
+
+    def load_state_dict(self, state: dict[str, Tensor]) -> None:
+        """Restore from `state_dict()`; the grid's resolution and cascades must match."""
+        for key in ("density", "occupied"):
+            if key not in state:
+                raise UserError(f"occupancy grid state has no '{key}' tensor",
+                                hint="the checkpoint is incomplete or of another format; retrain or re-save it")
+            if tuple(state[key].shape) != tuple(self.density.shape):
+                raise UserError(f"occupancy grid state '{key}' has shape {tuple(state[key].shape)}, but this grid "
+                                f"is {tuple(self.density.shape)} (cascades x resolution^3)",
+                                hint="create the grid with the checkpoint's resolution and cascades")
+        self.density = state["density"].to(self.device, torch.float32).clone()
+        self.occupied = state["occupied"].to(self.device).bool().clone()
+        md = state.get("mean_density")
+        self.mean_density = float(md.reshape(-1)[0]) if md is not None else float(self.density[0].mean())
+        self._version += 1

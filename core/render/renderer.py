@@ -1,0 +1,268 @@
+"""The one renderer: rays -> {rgb, depth, opacity, feature} for training, viewport, bench and export.
+
+Rays are processed in groups whose candidate samples (after empty-space skipping) fit `opts.chunk`.
+With gradients (training) a group uses nerfacc's trick: density of all candidates without grad, keep
+samples whose transmittance is above `t_threshold`, re-evaluate those with grad. Without gradients
+(viewport, export) rays are marched in rounds over the rays still alive, so samples behind opaque
+surfaces are never evaluated.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field as dc_field
+
+import torch
+from torch import Tensor
+
+from core.device import synchronize
+from core.errors import UserError
+from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
+from core.render.occupancy import OccupancyGrid, default_step
+from core.render.raymarch import (RayPlan, Samples, cat_samples, cube, expand_segments, next_segments,
+                                  plan_rays)
+from core.scene.cameras import Cameras
+
+OUTPUTS = ("rgb", "depth", "opacity", "feature")
+STRATEGIES = ("auto", "filter", "rounds")
+
+
+@dataclass
+class RenderOptions:
+    """What to render and under which budgets (see docs/CONTRACTS.md, "Renderer")."""
+
+    outputs: tuple = ("rgb", "depth", "opacity")  # any subset of OUTPUTS
+    background: Tensor | None = None  # (3,) or (R,3) composited behind; None = black
+    t_threshold: float = 1e-4  # early ray termination: samples behind T < t_threshold are dropped
+    max_samples: int = 1024  # steps across the field cube's diagonal; also the per-ray cap
+    perturb: bool = False  # jitter each sample inside its step (training)
+    chunk: int = 1 << 18  # memory budget: candidate samples alive at once
+    step_size: float | None = None  # None: 2*sqrt(3)*bound/max_samples (instant-ngp's rule)
+    near: float = 0.0  # rays start no earlier than this distance
+    strategy: str = "auto"  # auto | filter (2 passes; always with grad) | rounds (1 pass, no grad)
+    seg_steps: int = 16  # steps per coarse skipping segment
+    seg_window: int = 8  # segments a ray looks ahead per marching round
+    round_samples: int = 1 << 16  # target candidate samples per marching round
+    profile: bool = False  # per-stage seconds in stats['time'] (synchronises the device)
+
+
+@dataclass
+class _Acc:
+    """Per-group accumulators and statistics."""
+
+    stats: dict = dc_field(default_factory=lambda: {"rays": 0, "marched": 0, "candidates": 0, "samples": 0,
+                                                     "density_samples": 0})
+    time: dict = dc_field(default_factory=lambda: {"sampling": 0.0, "field": 0.0, "compositing": 0.0})
+
+
+class _Timer:
+    def __init__(self, acc: _Acc, key: str, on: bool, device):
+        self.acc, self.key, self.on, self.device = acc, key, on, device
+
+    def __enter__(self):
+        if self.on:
+            synchronize(self.device)
+            self.t0 = time.perf_counter()
+
+    def __exit__(self, *exc):
+        if self.on:
+            synchronize(self.device)
+            self.acc.time[self.key] += time.perf_counter() - self.t0
+
+
+def _check(opts: RenderOptions) -> None:
+    bad = [o for o in opts.outputs if o not in OUTPUTS]
+    if bad:
+        raise UserError(f"unknown render output(s) {bad}; choose from {list(OUTPUTS)}")
+    if opts.strategy not in STRATEGIES:
+        raise UserError(f"unknown render strategy '{opts.strategy}'; choose from {list(STRATEGIES)}")
+    if opts.max_samples < 1 or opts.seg_steps < 1 or opts.seg_window < 1 or opts.chunk < opts.seg_steps:
+        raise UserError(f"render options need max_samples, seg_steps, seg_window >= 1 and chunk >= seg_steps "
+                        f"(got {opts.max_samples}, {opts.seg_steps}, {opts.seg_window}, {opts.chunk})")
+    if not 0.0 <= opts.t_threshold < 1.0:
+        raise UserError(f"t_threshold must be in [0, 1) (got {opts.t_threshold})")
+
+
+def _field_bound(field) -> float:
+    cfg = getattr(field, "cfg", None)
+    return float(getattr(cfg, "bound", getattr(field, "bound", 1.0)))
+
+
+def _needs_grad(field) -> bool:
+    return torch.is_grad_enabled() and isinstance(field, torch.nn.Module) and any(
+        p.requires_grad for p in field.parameters())
+
+
+def _device_of(field, grid, origins) -> torch.device:
+    if isinstance(field, torch.nn.Module):
+        for p in field.parameters():
+            return p.device
+    return grid.device if grid is not None else origins.device
+
+
+def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, dict]:
+    """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked."""
+    if not heads:
+        return field.density(s.x).reshape(-1), {}
+    out = field(s.x, dirs[s.ray], outputs=heads)
+    return out["sigma"].reshape(-1), {h: out[h] for h in heads}
+
+
+def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPlan, heads: tuple,
+           opts: RenderOptions, collect: bool, acc: _Acc, dev, cancel) -> tuple[dict, list[Samples]] | None:
+    """March rays in rounds over those still alive. collect=False: evaluate the heads and composite each round
+    (inference). collect=True: evaluate density only (no grad) and return the samples in front of
+    T < t_threshold for a differentiable second pass (training). None when cancelled."""
+    prof, k = opts.profile, opts.seg_steps
+    n = o.shape[0]
+    nseg = (plan.n_steps + k - 1) // k
+    seg_next = torch.zeros(n, dtype=torch.long, device=dev)
+    carry = torch.zeros(n, dtype=torch.float64, device=dev)
+    tau_stop = -math.log(opts.t_threshold) if opts.t_threshold > 0 else math.inf
+    alive = nseg > 0
+    totals: dict[str, Tensor] = {}
+    kept: list[Samples] = []
+    while True:
+        if cancel is not None and cancel():
+            return None
+        with _Timer(acc, "sampling", prof, dev):
+            ids = alive.nonzero(as_tuple=True)[0]
+            if ids.numel() == 0:
+                break
+            take = max(1, min(opts.seg_window, opts.round_samples // (ids.numel() * k)))
+            segs = next_segments(o, d, plan, grid, ids, seg_next, k, opts.seg_window, take)
+            s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
+        acc.stats["candidates"] += len(s)
+        if collect:
+            with _Timer(acc, "field", prof, dev), torch.no_grad():
+                sigma = field.density(s.x).reshape(-1) if len(s) else torch.zeros(0, device=dev)
+            acc.stats["density_samples"] += len(s)
+            with _Timer(acc, "compositing", prof, dev), torch.no_grad():
+                tau = optical_depth(sigma, s.t_start, s.t_end)
+                visible = transmittance(tau, s.ray, carry) >= opts.t_threshold
+                kept.append(s.select(visible))
+                carry = carry + segment_sum(tau.double(), s.ray, n)
+        else:
+            with _Timer(acc, "field", prof, dev):
+                sigma, vals = _evaluate(field, s, d, heads)
+            acc.stats["samples"] += len(s)
+            with _Timer(acc, "compositing", prof, dev):
+                out = composite(sigma, s.t_start, s.t_end, s.t, s.ray, n, vals, tau_before=carry)
+                for name, v in out.items():
+                    if name not in ("weights", "tau"):
+                        totals[name] = totals[name] + v if name in totals else v
+                carry = carry + out["tau"]
+        alive = (seg_next < nseg) & (carry < tau_stop)
+    return totals, kept
+
+
+def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, cancel) -> dict | None:
+    """Outputs of one block of rays: per-ray sums 'opacity', 'depth_sum' and the heads."""
+    prof = opts.profile
+    marched = _march(field, grid, o, d, plan, heads, opts, strategy == "filter", acc, dev, cancel)
+    if marched is None:
+        return None
+    totals, kept = marched
+    if strategy == "filter" or not totals:
+        with _Timer(acc, "sampling", prof, dev):
+            s = cat_samples(kept, dev)
+        with _Timer(acc, "field", prof, dev):
+            sigma, vals = _evaluate(field, s, d, heads)  # with grad; also run on no samples to keep the graph
+        acc.stats["samples"] += len(s)
+        with _Timer(acc, "compositing", prof, dev):
+            totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals)
+    return totals
+
+
+def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, opts: RenderOptions,
+            cancel: Callable[[], bool] | None) -> dict | None:
+    _check(opts)
+    dev = _device_of(field, grid, origins)
+    origins = origins.to(dev, torch.float32).reshape(-1, 3)
+    dirs = dirs.to(dev, torch.float32).reshape(-1, 3)
+    n_rays = origins.shape[0]
+    heads = tuple(h for h in ("rgb", "feature") if h in opts.outputs)
+    need = set(opts.outputs) | ({"opacity"} if {"rgb", "depth"} & set(opts.outputs) else set())
+    strategy = "filter" if opts.strategy == "filter" or _needs_grad(field) else "rounds"
+    bound = grid.bound if grid is not None else _field_bound(field)
+    extent = grid.extent if grid is not None else bound
+    step = opts.step_size or default_step(bound, opts.max_samples)
+    acc = _Acc()
+    acc.stats["rays"] = n_rays
+
+    if grid is not None:
+        lo, hi = grid.occupied_bbox()
+    else:
+        lo, hi = cube(extent, dev)
+    pieces: list[dict] = []
+    block = max(1, opts.chunk // opts.seg_steps)
+    for b0 in range(0, n_rays, block):
+        o, d = origins[b0:b0 + block], dirs[b0:b0 + block]
+        with _Timer(acc, "sampling", opts.profile, dev):
+            plan = plan_rays(o, d, lo, hi, step, opts.max_samples, opts.near)
+        acc.stats["marched"] += int(plan_rays(o, d, *cube(extent, dev), step, opts.max_samples,
+                                              opts.near).n_steps.sum())
+        out = _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, cancel)
+        if out is None:
+            return None
+        pieces.append(out)
+
+    result: dict = {}
+    cat = {k: torch.cat([p[k] for p in pieces]) if pieces else None for k in ("opacity", "depth_sum", *heads)}
+    opacity = cat["opacity"] if pieces else torch.zeros(0, device=dev)
+    if "opacity" in need:
+        result["opacity"] = opacity
+    if "rgb" in opts.outputs:
+        bg = opts.background
+        if bg is not None and bg.dim() == 2 and bg.shape[0] != n_rays:
+            raise UserError(f"per-ray background has {bg.shape[0]} rows for {n_rays} rays")
+        result["rgb"] = apply_background(cat["rgb"] if pieces else torch.zeros(0, 3, device=dev), opacity, bg)
+    if "depth" in opts.outputs:
+        # expected distance of termination: sum(w t) / sum(w), bounded by the ray's last sample
+        result["depth"] = (cat["depth_sum"] / opacity.clamp_min(1e-6)) if pieces else torch.zeros(0, device=dev)
+    if "feature" in opts.outputs:
+        result["feature"] = cat["feature"]
+    if "opacity" not in opts.outputs:
+        result.pop("opacity", None)
+    stats = dict(acc.stats)
+    stats["samples_per_ray"] = stats["samples"] / max(1, n_rays)
+    stats["candidates_per_ray"] = stats["candidates"] / max(1, n_rays)
+    stats["marched_per_ray"] = stats["marched"] / max(1, n_rays)
+    stats["strategy"] = strategy
+    if opts.profile:
+        stats["time"] = dict(acc.time)
+    result["stats"] = stats
+    return result
+
+
+def render_rays(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor,
+                opts: RenderOptions | None = None) -> dict:
+    """Render unit-direction rays (R,3) in field space: the asked outputs ('rgb' (R,3), 'depth' (R,) along
+    the ray, 'opacity' (R,), 'feature' (R,F)) plus 'stats'. Differentiable; grid=None disables skipping."""
+    return _render(field, grid, origins, dirs, opts or RenderOptions(), None)
+
+
+@torch.no_grad()
+def render_camera(field, grid: OccupancyGrid | None, cameras: Cameras, i: int, opts: RenderOptions | None = None,
+                  scale: float = 1.0, cancel: Callable[[], bool] | None = None) -> dict | None:
+    """Render camera i (field space) at `scale` times its resolution: 'rgb' (H,W,3), 'depth' (H,W) z-depth,
+    'opacity' (H,W), 'feature' (H,W,F) as asked, plus 'stats'; None when `cancel()` turns true."""
+    cam = cameras[int(i)]
+    if scale != 1.0:
+        cam = cam.scaled(scale)
+    h, w = int(cam.height[0]), int(cam.width[0])
+    if h < 1 or w < 1:
+        raise UserError(f"render size {w}x{h} is empty (scale {scale}); use a larger scale")
+    origins, dirs, dz = cam.image_rays(0)
+    out = _render(field, grid, origins, dirs, opts or RenderOptions(), cancel)
+    if out is None:
+        return None
+    img: dict = {"stats": out["stats"]}
+    for k, v in out.items():
+        if k == "stats":
+            continue
+        if k == "depth":
+            v = v * dz.to(v.device)
+        img[k] = v.reshape(h, w, *v.shape[1:])
+    return img
