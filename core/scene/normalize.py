@@ -92,7 +92,7 @@ def normalize_scene(scene: Scene) -> Normalization:
     if aabb is not None:
         rule, (lo, hi) = "aabb", np.asarray(aabb, dtype=np.float64)
     elif scene.kind == "forward":
-        bounds = scene.extra.get("bounds")
+        bounds = scene.extra.get("bounds", scene.extra.get("depth_range"))
         near, far = (float(np.min(bounds)), float(np.max(bounds))) if bounds is not None else (scene.near, scene.far)
         if not (0 < near < far < _DEFAULT_FAR):
             near, far = 1.0, 10.0
