@@ -1,0 +1,200 @@
+"""Similarity maps and masks (paper's mask equation: M = cos(q, F(x)) > alpha) for one view or every
+training view from one selection, with a per-view cache of rendered feature maps so a new query or a
+new threshold costs one matrix product per view, not a render.
+
+Masks on disk (what the repaint reads): WS/masks/mask_0000.png ... (uint8, 255 = selected, one per
+training view in order) and WS/masks/index.json naming the view of each file.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from core.errors import UserError, WorkspaceError
+from core.select.similarity import cosine_similarity
+from core.workspace import atomic
+
+# The one default threshold alpha of the mask equation, chosen by `bench mask` across all presets with
+# the default teacher (see docs/masks.png and the issue note for the figures).
+DEFAULT_THRESHOLD = 0.5
+MASK_INDEX = "index.json"
+
+
+def check_threshold(threshold: float) -> float:
+    """The threshold as a float in [0, 1], else a UserError."""
+    try:
+        t = float(threshold)
+    except (TypeError, ValueError):
+        raise UserError(f"threshold '{threshold}' is not a number", hint="give a value in [0, 1]") from None
+    if not 0.0 <= t <= 1.0 or t != t:
+        raise UserError(f"threshold {threshold} is outside [0, 1]",
+                        hint=f"cosine similarity thresholds lie in [0, 1]; the default is {DEFAULT_THRESHOLD}")
+    return t
+
+
+def similarity_map(features: Tensor, positives: Tensor, negatives: Tensor | None = None) -> Tensor:
+    """Similarity (H, W) of a feature map (H, W, F) to a selection's queries.
+
+    One query: its cosine similarity. Several positives: the best of them (a union of matches). With
+    negatives: a pixel at least as similar to some negative as to every positive gets min(s, 0), so it is
+    never selected at a threshold >= 0. All queries go through one matrix product.
+    """
+    pos = positives.reshape(-1, positives.shape[-1]) if positives.dim() > 1 else positives[None]
+    n_pos = pos.shape[0]
+    if n_pos == 0:
+        raise UserError("the selection has no positive patch", hint="select a patch on the object first")
+    qs = pos if negatives is None or negatives.numel() == 0 else torch.cat(
+        [pos, negatives.reshape(-1, pos.shape[-1]).to(pos)], 0)
+    if features.shape[-1] != qs.shape[-1]:
+        raise UserError(f"the query has {qs.shape[-1]} feature dimensions but the field renders "
+                        f"{features.shape[-1]}", hint="make a new selection with this workspace's field")
+    sims = cosine_similarity(features, qs)
+    s = sims[..., :n_pos].amax(-1)
+    if qs.shape[0] > n_pos:
+        neg = sims[..., n_pos:].amax(-1)
+        s = torch.where(neg >= s, s.clamp(max=0.0), s)
+    return s
+
+
+def threshold_mask(similarity: Tensor, threshold: float) -> Tensor:
+    """The paper's mask equation: similarity > threshold (bool, same shape)."""
+    return similarity > check_threshold(threshold)
+
+
+@dataclass
+class ViewMaps:
+    """What a view's masks need from the field: feature map (H, W, F) fp16, z-depth and opacity (H, W)."""
+
+    feature: Tensor
+    depth: Tensor
+    opacity: Tensor
+
+
+class ViewCache:
+    """Rendered feature/depth/opacity maps per training view, kept while the field is unchanged.
+
+    `token` identifies the field state (e.g. the training step or version id); a different token drops
+    everything. Maps are stored in fp16 on the CPU (64x64x32 features: 0.26 MB a view).
+    """
+
+    def __init__(self, field, grid, cameras, token=None, render_opts=None):
+        self.field, self.grid, self.cameras = field, grid, cameras
+        self.token = token
+        self.render_opts = render_opts
+        self._maps: dict[int, ViewMaps] = {}
+
+    def reset(self, token=None) -> None:
+        self.token = token
+        self._maps.clear()
+
+    def __len__(self) -> int:
+        return len(self._maps)
+
+    def get(self, view: int) -> ViewMaps:
+        """The maps of training view `view`, rendered on first use."""
+        if view not in self._maps:
+            self._maps[view] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts)
+        return self._maps[view]
+
+
+def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
+    """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer."""
+    from dataclasses import replace
+
+    from core.render.renderer import RenderOptions, render_camera
+
+    n = len(cameras)
+    if not 0 <= int(view) < n:
+        raise UserError(f"view {view} does not exist; the scene has {n} training views",
+                        hint=f"choose --view between 0 and {n - 1}")
+    base = opts or RenderOptions()
+    opts = replace(base, outputs=("feature", "depth", "opacity"), background=None, perturb=False)
+    out = render_camera(field, grid, cameras, int(view), opts)
+    return ViewMaps(out["feature"].to("cpu", torch.float16), out["depth"].float().cpu(),
+                    out["opacity"].float().cpu())
+
+
+def masks_for_views(field, grid, cameras, selection, threshold: float | None = None, workspace=None,
+                    cleanup: bool | None = None, cache: ViewCache | None = None, names: list[str] | None = None,
+                    progress: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
+    """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
+    (WS/masks) when given. `cleanup` (default: the selection's) applies the 3D clean-up of cleanup3d."""
+    from core.select.cleanup3d import cleanup_masks
+
+    t = check_threshold(selection.threshold if threshold is None else threshold)
+    cache = cache or ViewCache(field, grid, cameras)
+    n = len(cameras)
+    sims, maps = [], []
+    for i in range(n):
+        m = cache.get(i)
+        maps.append(m)
+        sims.append(selection.similarity(m.feature))
+        if progress:
+            progress(i + 1, n)
+    masks = [s > t for s in sims]
+    do_cleanup = selection.cleanup if cleanup is None else cleanup
+    if do_cleanup:
+        seeds = [(p.view, p) for p in selection.patches if p.positive]
+        masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cameras, seeds)
+    out = [m.cpu().numpy().astype(bool) for m in masks]
+    if workspace is not None:
+        write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup)})
+    return out
+
+
+def mask_png(mask: np.ndarray) -> bytes:
+    """A bool mask as PNG bytes (uint8, 255 = selected)."""
+    ok, buf = cv2.imencode(".png", np.where(np.asarray(mask, bool), 255, 0).astype(np.uint8))
+    if not ok:
+        raise UserError("cannot encode a mask as PNG")
+    return buf.tobytes()
+
+
+def write_masks(folder: str | Path, masks: list[np.ndarray], names: list[str] | None = None,
+                info: dict | None = None) -> list[Path]:
+    """Write masks as mask_0000.png ... plus index.json into `folder` (atomically, file by file)."""
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the mask folder ({exc.strerror or exc})", folder,
+                        hint="choose a folder you can write to") from exc
+    paths = []
+    views = []
+    for i, m in enumerate(masks):
+        p = folder / f"mask_{i:04d}.png"
+        atomic.write_bytes(p, mask_png(m))
+        paths.append(p)
+        views.append({"view": i, "file": p.name, "name": names[i] if names else None,
+                      "pixels": int(np.count_nonzero(m))})
+    atomic.write_json(folder / MASK_INDEX, {**(info or {}), "views": views})
+    return paths
+
+
+def load_masks(folder: str | Path) -> list[np.ndarray]:
+    """Masks written by `write_masks` (e.g. WS/masks), in view order, as bool arrays."""
+    folder = Path(folder)
+    index = folder / MASK_INDEX
+    if not index.is_file():
+        raise WorkspaceError("no masks here (no index.json)", folder,
+                             hint="make a selection first: repaint-nerf select WS --view I --patch x0,y0,x1,y1")
+    import json
+
+    try:
+        views = json.loads(index.read_text(encoding="utf-8"))["views"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise WorkspaceError(f"the mask index is unreadable ({exc})", index, hint="run repaint-nerf select again")
+    out = []
+    for v in views:
+        img = cv2.imread(str(folder / v["file"]), cv2.IMREAD_GRAYSCALE)
+        if img is None:
+            raise WorkspaceError("a mask file is missing or corrupt", folder / v["file"],
+                                 hint="run repaint-nerf select again")
+        out.append(img > 127)
+    return out

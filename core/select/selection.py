@@ -1,0 +1,129 @@
+"""The Selection record: positive/negative patches with their views, their query vectors, text queries,
+the threshold, the clean-up switch and the teacher the field learned from; saved into the workspace
+atomically (WS/selections/<name>.json) so the editor, `select` and the repaint agree on one selection.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from core.errors import UserError, WorkspaceError
+from core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
+from core.select.query import Patch, patch_query, text_query
+from core.workspace import atomic
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class Selection:
+    """Queries that select an object; see `core.select.masks.similarity_map` for how several combine."""
+
+    patches: list[Patch] = field(default_factory=list)
+    positives: list[Tensor] = field(default_factory=list)  # (F,) query vectors, patches first then texts
+    negatives: list[Tensor] = field(default_factory=list)
+    texts: list[str] = field(default_factory=list)
+    threshold: float = DEFAULT_THRESHOLD
+    cleanup: bool = True
+    teacher: str = ""
+    created: float = field(default_factory=time.time)
+
+    # -- building --------------------------------------------------------------------------------
+    def add_patch(self, features: Tensor, patch, subtract: bool = False, view: int | None = None) -> Patch:
+        """Add the mean feature of a patch of a rendered feature map (H, W, F) as a positive (or, with
+        `subtract`, a negative) query. `patch` is a `Patch` in pixels, or a plain (x0, y0, x1, y1) in image
+        fractions [0, 1] (the editor's drag) in view `view` (-1 when it is not a training view)."""
+        features = torch.as_tensor(features)
+        h, w = int(features.shape[0]), int(features.shape[1])
+        if isinstance(patch, Patch):
+            p = Patch(patch.view, patch.x0, patch.y0, patch.x1, patch.y1, patch.positive and not subtract)
+        else:
+            p = Patch.from_normalized(patch, -1 if view is None else view, w, h, positive=not subtract)
+        q = patch_query(features, p)
+        self._check_dim(q)
+        (self.positives if p.positive else self.negatives).append(q.cpu())
+        self.patches.append(p)
+        return p
+
+    def add_text(self, text: str, teacher, codec=None) -> None:
+        """Add a text query through a teacher with a CLIP-aligned text encoder (see query.text_query)."""
+        q = text_query(text, teacher, codec)
+        self._check_dim(q)
+        self.positives.append(q)
+        self.texts.append(str(text))
+
+    def _check_dim(self, q: Tensor) -> None:
+        have = self.positives + self.negatives
+        if have and have[0].shape[-1] != q.shape[-1]:
+            raise UserError(f"this query has {q.shape[-1]} feature dimensions, the selection's have "
+                            f"{have[0].shape[-1]}", hint="start a new selection")
+
+    @property
+    def empty(self) -> bool:
+        return not self.positives
+
+    @property
+    def feature_dim(self) -> int:
+        return int(self.positives[0].shape[-1]) if self.positives else 0
+
+    # -- using -------------------------------------------------------------------------------------
+    def query_tensors(self, device=None) -> tuple[Tensor, Tensor | None]:
+        """(positives (P, F), negatives (N, F) or None) on `device`."""
+        if not self.positives:
+            raise UserError("the selection has no positive patch", hint="select a patch on the object first")
+        pos = torch.stack(self.positives).to(device)
+        neg = torch.stack(self.negatives).to(device) if self.negatives else None
+        return pos, neg
+
+    def similarity(self, features: Tensor) -> Tensor:
+        """Similarity map (H, W) of a rendered feature map (H, W, F) to this selection."""
+        features = torch.as_tensor(features)
+        pos, neg = self.query_tensors(features.device)
+        return similarity_map(features, pos, neg)
+
+    def mask(self, features: Tensor, threshold: float | None = None) -> Tensor:
+        """Mask (H, W) bool: similarity > threshold (the selection's threshold by default)."""
+        return threshold_mask(self.similarity(features), self.threshold if threshold is None else threshold)
+
+    # -- saving ----------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {"format": FORMAT_VERSION, "threshold": float(self.threshold), "cleanup": bool(self.cleanup),
+                "teacher": self.teacher, "created": self.created, "texts": list(self.texts),
+                "patches": [p.to_dict() for p in self.patches],
+                "positives": [q.float().tolist() for q in self.positives],
+                "negatives": [q.float().tolist() for q in self.negatives]}
+
+    @staticmethod
+    def from_dict(d: dict) -> "Selection":
+        if d.get("format") != FORMAT_VERSION:
+            raise ValueError(f"selection format {d.get('format')!r}, expected {FORMAT_VERSION}")
+        return Selection(patches=[Patch.from_dict(p) for p in d["patches"]],
+                         positives=[torch.tensor(q, dtype=torch.float32) for q in d["positives"]],
+                         negatives=[torch.tensor(q, dtype=torch.float32) for q in d["negatives"]],
+                         texts=list(d.get("texts", [])), threshold=check_threshold(d["threshold"]),
+                         cleanup=bool(d.get("cleanup", True)), teacher=str(d.get("teacher", "")),
+                         created=float(d.get("created", 0.0)))
+
+    def save(self, workspace, name: str = "current") -> Path:
+        """Write the selection to WS/selections/<name>.json atomically; returns the path."""
+        path = Path(workspace.selections_dir) / f"{name}.json"
+        atomic.write_json(path, self.to_dict())
+        return path
+
+    @staticmethod
+    def load(workspace, name: str = "current") -> "Selection":
+        """Read a selection written by `save`; a missing or damaged file is a WorkspaceError."""
+        path = Path(workspace.selections_dir) / f"{name}.json"
+        if not path.is_file():
+            raise WorkspaceError("no selection saved here", path,
+                                 hint="make one: repaint-nerf select WS --view I --patch x0,y0,x1,y1")
+        try:
+            return Selection.from_dict(json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise WorkspaceError(f"cannot read this selection ({exc})", path,
+                                 hint="make a new selection with repaint-nerf select") from exc
