@@ -173,6 +173,10 @@ class Stage1Trainer:
         self.last_times: dict = {}
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
+        if not self.cfg.lambda_feature:
+            self.features = None  # weight 0: the feature head is never rendered
+        if not self.cfg.lambda_depth:
+            self.depth = self.depth_pixels = None
         self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
             + (("depth",) if self.depth is not None else ())
 
@@ -213,7 +217,7 @@ class Stage1Trainer:
         flat = torch.full((self.n_pixels,), float("nan"))
         offs, ws, hs = self.offsets.cpu(), self.widths.cpu(), self.heights.cpu()
         for i in range(n):
-            p = priors[i]
+            p = priors.for_image(i) if hasattr(priors, "for_image") else priors[i]
             if p is None:
                 continue
             w, h, o = int(ws[i]), int(hs[i]), int(offs[i])

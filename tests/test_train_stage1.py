@@ -1,0 +1,340 @@
+"""Stage-1 trainer: metrics, losses, schedule and progress bar against plain references; training on a tiny
+generated scene raises test PSNR; feature/depth losses cost nothing when off and decrease when on;
+checkpoints resume and render identically; `train`/`render` commands end to end with clear errors."""
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+
+from core.train import losses
+from core.train.metrics import mse_to_psnr, psnr, ssim
+from core.train.progress import ProgressBar
+from core.train.schedule import LRSchedule
+
+
+def _field_available() -> bool:
+    try:
+        import core.field.field  # noqa: F401
+        return True
+    except ImportError:
+        return False
+
+
+@dataclass
+class TinyFieldConfig:
+    """Config of the stand-in field used while `core.field.field` is not built."""
+
+    resolution: int = 24
+    feature_dim: int = 0
+    bound: float = 1.0
+
+
+class TinyField(torch.nn.Module):
+    """A dense trilinear voxel field with the NGPField interface (density, forward, parameter_groups)."""
+
+    def __init__(self, cfg: TinyFieldConfig):
+        super().__init__()
+        self.cfg = cfg
+        r = cfg.resolution
+        self.geo = torch.nn.Parameter(torch.randn(1, 4, r, r, r) * 0.01)
+        self.feat = torch.nn.Parameter(torch.zeros(1, cfg.feature_dim, r, r, r)) if cfg.feature_dim else None
+
+    def _sample(self, vol, x):
+        g = (x / self.cfg.bound).reshape(1, -1, 1, 1, 3)
+        # x30: Adam's step is ~lr per parameter, so this gives the voxels a hash grid's learning speed
+        return 30 * torch.nn.functional.grid_sample(vol, g, align_corners=True).reshape(vol.shape[1], -1).T
+
+    def density(self, x):
+        inside = (x.abs() <= self.cfg.bound).all(-1)
+        return torch.nn.functional.softplus(self._sample(self.geo[:, :1], x)[:, 0] - 1) * inside
+
+    def forward(self, x, d, outputs=("rgb",)):
+        v = self._sample(self.geo, x)
+        inside = (x.abs() <= self.cfg.bound).all(-1)
+        out = {"sigma": torch.nn.functional.softplus(v[:, 0] - 1) * inside}
+        if "rgb" in outputs:
+            out["rgb"] = torch.sigmoid(v[:, 1:4])
+        if "feature" in outputs:
+            out["feature"] = self._sample(self.feat, x)
+        return out
+
+    def parameter_groups(self):
+        return {"grid": [self.geo], "feature": [self.feat] if self.feat is not None else []}
+
+
+@pytest.fixture
+def field_impl(monkeypatch):
+    """The real field when built; else the stand-in (patched into the trainer's field factory)."""
+    if _field_available():
+        return "real"
+    import core.train.stage1 as stage1
+
+    def make(cfg=None, device=None, image_size=None):
+        cfg = cfg or TinyFieldConfig()
+        return TinyField(cfg).to(device), cfg
+
+    monkeypatch.setattr(stage1, "make_field", make)
+    monkeypatch.setattr(stage1, "field_config_from_dict", lambda d: TinyFieldConfig(**d))
+    return "stand-in"
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from core.scene.loaders.detect import load_scene
+    from core.synth.generate import make_scene
+
+    path = make_scene("demo", tmp_path_factory.mktemp("demo32") / "demo", size=32, views=12, seed=0, test_views=3)
+    return path, load_scene(path, 1.0)
+
+
+def _cfg(**kw):
+    from core.train.stage1 import TrainConfig
+
+    base = dict(rays_per_batch=1024, max_samples=128, grid_resolution=32, seed=0)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+# -- plain pieces ---------------------------------------------------------------------------------------
+def test_psnr_and_ssim_against_references():
+    rng = np.random.default_rng(0)
+    a = rng.random((20, 24, 3)).astype(np.float32)
+    b = np.clip(a + rng.normal(0, 0.05, a.shape), 0, 1).astype(np.float32)
+    ref = 10 * math.log10(1.0 / np.mean((a - b) ** 2))
+    assert psnr(torch.from_numpy(a), torch.from_numpy(b)) == pytest.approx(ref, rel=1e-5)
+    assert mse_to_psnr(0.01) == pytest.approx(20.0)
+    assert ssim(torch.from_numpy(a), torch.from_numpy(a)) == pytest.approx(1.0, abs=1e-6)
+    noisy = ssim(torch.from_numpy(a), torch.from_numpy(b))
+    assert 0.0 < noisy < 0.99
+    # A constant image against a shifted constant: only the luminance term, computed by hand.
+    x, y = torch.full((16, 16, 1), 0.2), torch.full((16, 16, 1), 0.6)
+    c1 = 0.01 ** 2
+    assert ssim(x, y) == pytest.approx((2 * 0.2 * 0.6 + c1) / (0.2 ** 2 + 0.6 ** 2 + c1), rel=1e-4)
+
+
+def test_losses_match_definitions():
+    p, t = torch.tensor([[0.0, 0.5, 1.0]]), torch.tensor([[1.0, 0.5, 0.0]])
+    assert float(losses.color_loss(p, t)) == pytest.approx(2 / 3)
+    assert float(losses.color_loss(p, t, "huber", delta=0.1)) == pytest.approx(2 * 0.1 * (1 - 0.05) / 3)
+    z = torch.tensor([1.0, 2.0, 5.0])
+    zt = torch.tensor([1.5, float("nan"), 1.0])
+    valid = torch.isfinite(zt)
+    assert float(losses.depth_loss(z, zt, valid)) == pytest.approx((0.25 + 16) / 2)
+    assert float(losses.depth_loss(z, zt, torch.zeros(3, dtype=torch.bool))) == 0.0
+    total = losses.stage1_loss(torch.tensor(1.0), torch.tensor(2.0), torch.tensor(3.0), 0.5, 0.1)
+    assert float(total) == pytest.approx(1 + 1 + 0.3)  # paper Eq. s1
+    assert float(losses.stage1_loss(torch.tensor(1.0), None, None, 0.5, 0.1)) == 1.0
+
+
+def test_schedule():
+    s = LRSchedule("exp", final_factor=0.1)
+    assert s.factor(0) == 1.0 and s.factor(1) == pytest.approx(0.1) and s.factor(0.5) == pytest.approx(0.1 ** 0.5)
+    assert s.factor(2.0) == pytest.approx(0.1)
+    st = LRSchedule("step")
+    assert st.factor(0.4) == 1.0 and st.factor(0.8) == pytest.approx(0.33 ** 2)
+    w = LRSchedule("const", warmup=0.1)
+    assert w.factor(0.0) == pytest.approx(0.1) and w.factor(0.2) == 1.0
+
+
+def test_progress_bar_text():
+    buf = io.StringIO()
+    bar = ProgressBar(total_steps=100, stream=buf)
+    text = bar.format(0, 0.0)
+    text = bar.format(50, 10.0, psnr=23.456)
+    assert "50%" in text and "50/100" in text and "ETA 0:10" in text and "23.46 dB" in text and "5.0 it/s" in text
+    bar.update(50, 23.4, force=True)
+    bar.close(100, 25.0)
+    assert buf.getvalue().strip().splitlines()[-1].startswith("train [" + "#" * 24 + "] 100%")
+
+
+# -- the trainer ------------------------------------------------------------------------------------------
+def test_training_raises_test_psnr(tiny_scene, field_impl):
+    from core.train.stage1 import Stage1Trainer
+
+    _, scene = tiny_scene
+    tr = Stage1Trainer(scene, None, _cfg())
+    before = tr.evaluate()["psnr"]
+    tr.plan(steps=40)  # a few seconds on an idle machine (steps, not seconds: the test must not depend on load)
+    info = tr.train(steps=40)
+    after = tr.evaluate()["psnr"]
+    assert info["step"] == tr.step_count == 40
+    assert set(info) >= {"color", "loss", "psnr", "seconds", "lr"}
+    assert after > before + 4.0, (before, after, tr.step_count, field_impl)
+    assert tr.done
+
+
+def test_seeded_and_reproducible(tiny_scene, field_impl):
+    from core.train.stage1 import Stage1Trainer
+
+    _, scene = tiny_scene
+    runs = []
+    for _ in range(2):
+        tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
+        runs.append([tr.step()["loss"] for _ in range(3)])
+    assert runs[0] == runs[1]
+
+
+def test_random_background_targets(tiny_scene, field_impl):
+    from core.train.stage1 import Stage1Trainer
+
+    _, scene = tiny_scene
+    tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096))
+    assert tr.has_alpha and tr.pixels.dtype == torch.uint8 and tr.pixels.shape[0] == 12 * 32 * 32
+    b = tr.make_batch()
+    idx_img, u, v = tr.pixel_coords(torch.tensor([0, 31, 32, 32 * 32 + 5]))
+    assert idx_img.tolist() == [0, 0, 0, 1] and u.tolist() == [0, 31, 0, 5] and v.tolist() == [0, 0, 1, 0]
+    bg = b["background"]
+    assert bg.shape == (4096, 3) and bg.std() > 0.2  # a random colour per ray
+    # Where the image is transparent the target is exactly the background colour of that ray.
+    torch.manual_seed(0)
+    tr2 = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096))
+    idx = tr2.sample_pixels(4096)
+    alpha = tr2.pixels[idx, 3]
+    tr2.gen.manual_seed(0)
+    b2 = tr2.make_batch()
+    clear = alpha == 0
+    assert clear.any()
+    assert torch.allclose(b2["rgb"][clear], b2["background"][clear])
+
+
+class _Spy:
+    def __init__(self, fn):
+        self.fn, self.outputs = fn, []
+
+    def __call__(self, field, grid, origins, dirs, opts):
+        self.outputs.append(tuple(opts.outputs))
+        return self.fn(field, grid, origins, dirs, opts)
+
+
+def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch):
+    import core.train.stage1 as stage1
+
+    _, scene = tiny_scene
+    spy = _Spy(stage1.render_rays)
+    monkeypatch.setattr(stage1, "render_rays", spy)
+    tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
+    info = tr.step()
+    assert spy.outputs == [("rgb",)]
+    assert "feature" not in info and "depth" not in info
+    assert tr.features is None and tr.depth is None
+
+
+def test_feature_and_depth_losses_act_when_on(tiny_scene, field_impl, monkeypatch):
+    import core.train.stage1 as stage1
+
+    _, scene = tiny_scene
+    spy = _Spy(stage1.render_rays)
+    monkeypatch.setattr(stage1, "render_rays", spy)
+    n = len(scene.train)
+    target = np.zeros((16, 16, 8), np.float32)  # half resolution, like the compressed cache
+    target[..., 0] = 1.0
+    depth = [np.full((32, 32), 4.0, np.float32) for _ in range(n)]  # a constant z-depth of 4 world units
+    ends = {}
+    for weight in (1.0, 1e-6):  # same seed and batches; only the weight of Eq. s1's extra terms differs
+        tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=512, lambda_feature=weight, lambda_depth=weight),
+                                  feature_targets=[target] * n, depth_priors=depth)
+        assert tr.field_cfg.feature_dim == 8
+        first = tr.step()
+        tr.train(steps=30)
+        last = [tr.step() for _ in range(3)]
+        ends[weight] = (first, {k: np.mean([i[k] for i in last]) for k in ("feature", "depth")})
+    assert set(spy.outputs[0]) == {"rgb", "feature", "depth"}
+    (first, on), (_, off) = ends[1.0], ends[1e-6]
+    assert on["feature"] < 0.5 * first["feature"] and on["feature"] < 0.5 * off["feature"], (first, on, off)
+    assert on["depth"] < 0.5 * off["depth"], (first, on, off)
+    # Depth priors are converted to field units with the scene's scale.
+    assert float(torch.nanmean(tr.depth)) == pytest.approx(4.0 * scene.norm.scale, rel=1e-5)
+
+
+def test_sparse_depth_priors_get_extra_rays(tiny_scene, field_impl):
+    import core.train.stage1 as stage1
+
+    _, scene = tiny_scene
+    n = len(scene.train)
+    pts = [{"u": np.array([3.5, 10.2]), "v": np.array([4.5, 20.9]), "z": np.array([2.0, 3.0])} for _ in range(n)]
+    tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=512, lambda_depth=1.0), depth_priors=pts)
+    assert tr.depth_pixels is not None and tr.depth_pixels.numel() == 2 * n
+    assert float(tr.depth[4 * 32 + 3]) == pytest.approx(2.0 * scene.norm.scale)
+    b = tr.make_batch()
+    assert b["rgb"].shape[0] == 512 + 64 and torch.isfinite(b["depth"][512:]).all()
+    assert math.isfinite(tr.step()["depth"])
+
+
+# -- checkpoints --------------------------------------------------------------------------------------------
+def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path):
+    from core.render.renderer import RenderOptions, render_camera
+    from core.train.checkpoint import Checkpoint
+    from core.train.stage1 import Stage1Trainer, restore_field
+    from core.workspace.workspace import Workspace
+
+    _, scene = tiny_scene
+    ws = Workspace.create(tmp_path / "ws")
+    tr = Stage1Trainer(scene, ws, _cfg(rays_per_batch=256))
+    tr.train(steps=20)
+    path = tr.save_checkpoint()
+    # Resuming continues exactly where an uninterrupted run would be (the RNG states are part of the checkpoint).
+    more = [tr.step()["loss"] for _ in range(3)]
+    tr2 = Stage1Trainer(scene, ws, _cfg(rays_per_batch=256))
+    assert tr2.resume() and tr2.step_count == 20
+    again = [tr2.step()["loss"] for _ in range(3)]
+    assert again == pytest.approx(more, rel=1e-6, abs=1e-9)
+    # A field restored from the file renders what the saved one rendered.
+    cams = scene.field_cameras("test")
+    opts = RenderOptions(outputs=("rgb", "depth"), perturb=False)
+    tr_ref = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
+    tr_ref.load(Checkpoint.load(path))
+    ref = render_camera(tr_ref.field, tr_ref.grid, cams, 0, opts)
+    fld, grid, header = restore_field(Checkpoint.load(path))
+    got = render_camera(fld, grid, cams, 0, opts)
+    assert header["step"] == 20
+    assert torch.allclose(got["rgb"], ref["rgb"], atol=1e-6) and torch.allclose(got["depth"], ref["depth"], atol=1e-6)
+    assert not torch.allclose(got["rgb"], render_camera(tr.field, tr.grid, cams, 0, opts)["rgb"], atol=1e-6)
+    # The reconstruction becomes a version that later versions do not overwrite.
+    v = tr2.save_version()
+    assert ws.original_version.id == v.id and ws.current_version.kind == "stage1"
+
+
+# -- command line ----------------------------------------------------------------------------------------------
+def test_cli_train_and_render(tiny_scene, field_impl, tmp_path, capsys):
+    from app.cli import main
+
+    path, _ = tiny_scene
+    ws = tmp_path / "ws"
+    assert main(["train", str(path), "--workspace", str(ws), "--steps", "15", "--rays", "512"]) == 0
+    out = capsys.readouterr()
+    assert "test PSNR" in out.out and "saved version v0001" in out.out
+    assert (ws / "checkpoints" / "stage1.safetensors").exists()
+    assert main(["train", str(path), "--workspace", str(ws), "--steps", "20", "--rays", "512", "--resume"]) == 0
+    assert "resumed at step 15" in capsys.readouterr().out
+    outdir = tmp_path / "renders"
+    assert main(["render", str(ws), "--split", "test", "--out", str(outdir), "--depth"]) == 0
+    assert sorted(p.name for p in outdir.iterdir()) == ["test_000.png", "test_000_depth.png", "test_001.png",
+                                                        "test_001_depth.png", "test_002.png", "test_002_depth.png"]
+    import cv2
+
+    assert cv2.imread(str(outdir / "test_000.png")).shape == (32, 32, 3)
+    tt = tmp_path / "tt"
+    assert main(["render", str(ws), "--split", "turntable", "--out", str(tt), "--frames", "4", "--scale", "0.5"]) == 0
+    text = capsys.readouterr().out
+    assert len(list(tt.glob("turntable_*.png"))) == 4
+    assert cv2.imread(str(tt / "turntable_000.png")).shape == (16, 16, 3)
+    assert (tt / "turntable.mp4").exists() or "PNGs only" in text
+
+
+def test_cli_bad_input(tmp_path, capsys):
+    from app.cli import main
+
+    assert main(["train", str(tmp_path / "nope"), "--workspace", str(tmp_path / "ws"), "--steps", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and "no such" in err and "Traceback" not in err
+    assert main(["render", str(tmp_path / "missing_ws"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing_ws" in capsys.readouterr().err
+    (tmp_path / "notws").mkdir()
+    (tmp_path / "notws" / "x.txt").write_text("hi")
+    assert main(["render", str(tmp_path / "notws"), "--out", str(tmp_path / "o")]) == 2
+    assert "not a repaint-nerf workspace" in capsys.readouterr().err
