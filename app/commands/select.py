@@ -1,0 +1,102 @@
+"""`repaint-nerf select WS --view I --patch x0,y0,x1,y1 [--add ...] [--sub ...] --out DIR`: select an
+object through the workspace's feature field; writes the selection and every training view's mask
+(into DIR and into the workspace, where the repaint reads them)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "select"
+HELP = "select an object by a patch in one training view; writes the selection and a mask per training view"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("workspace", help="workspace folder trained with a feature head (repaint-nerf train)")
+    p.add_argument("--view", type=int, required=True, help="training view index the patches are drawn in")
+    p.add_argument("--patch", required=True, help="x0,y0,x1,y1 in pixels (x1, y1 exclusive): the object's patch")
+    p.add_argument("--add", action="append", default=[], metavar="x0,y0,x1,y1",
+                   help="another positive patch in the same view (repeatable): selects its look-alikes too")
+    p.add_argument("--sub", action="append", default=[], metavar="x0,y0,x1,y1",
+                   help="a negative patch (repeatable): pixels closer to it than to every positive are dropped")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="similarity threshold in [0, 1] (default: the program's measured default)")
+    p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
+    p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
+
+
+def load_trained(workspace, device=None):
+    """(field, grid, header, scene) of a workspace's current version (else its checkpoint); the scene's
+    normalisation is the one the field was trained in. A field without a feature head is a UserError."""
+    from core.errors import WorkspaceError
+    from core.scene.loaders.detect import load_scene
+    from core.scene.scene import Normalization
+    from core.train.checkpoint import Checkpoint
+    from core.train.stage1 import CHECKPOINT_NAME, restore_field
+
+    version = workspace.current_version
+    ck_path = workspace.version_path(version) if version else workspace.checkpoints_dir / CHECKPOINT_NAME
+    if not ck_path.exists():
+        raise WorkspaceError("the workspace has no trained field yet", workspace.root,
+                             hint=f"run: repaint-nerf train SCENE --workspace {workspace.root}")
+    ckpt = Checkpoint.load(ck_path)
+    if not int(ckpt.header.get("field_config", {}).get("feature_dim", 0) or 0):
+        raise WorkspaceError("this workspace's field was trained without a feature head, so it cannot select",
+                             ck_path, hint="train it again with teacher features (a feature head), then select")
+    field, grid, header = restore_field(ckpt, device)
+    settings = workspace.settings
+    scene_root = settings.get("scene") or header["scene"]["root"]
+    scene = load_scene(Path(scene_root), settings.get("downscale", 1.0))
+    if header.get("scene", {}).get("norm"):
+        scene.norm = Normalization.from_dict(header["scene"]["norm"])
+    return field, grid, header, scene
+
+
+def run(args: argparse.Namespace) -> int:
+    import time
+
+    import numpy as np
+
+    from core.errors import UserError
+    from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
+    from core.select.query import Patch
+    from core.select.selection import Selection
+    from core.workspace.workspace import Workspace
+
+    threshold = check_threshold(DEFAULT_THRESHOLD if args.threshold is None else args.threshold)
+    patches = [Patch.parse(args.patch, args.view)] + [Patch.parse(t, args.view) for t in args.add] \
+        + [Patch.parse(t, args.view, positive=False) for t in args.sub]
+    ws = Workspace.open(args.workspace)
+    field, grid, header, scene = load_trained(ws, args.device)
+    cams = scene.field_cameras("train")
+    n = len(cams)
+    if not 0 <= args.view < n:
+        raise UserError(f"--view {args.view} does not exist; the scene has {n} training views",
+                        hint=f"choose --view between 0 and {n - 1}")
+    w, h = int(cams.width[args.view]), int(cams.height[args.view])
+    for p in patches:
+        p.check(w, h)
+
+    t0 = time.perf_counter()
+    cache = ViewCache(field, grid, cams)
+    feat = cache.get(args.view).feature
+    sel = Selection(threshold=threshold, cleanup=not args.no_cleanup,
+                    teacher=str(header.get("teacher") or ws.settings.get("teacher") or "default"))
+    for p in patches:
+        sel.add_patch(feat, p)
+    names = list(scene.train.names)
+    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names)
+    sel_path = sel.save(ws)
+    out = Path(args.out)
+    write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})
+    sel_copy = out / "selection.json"
+    from core.workspace import atomic
+
+    atomic.write_json(sel_copy, sel.to_dict())
+    cover = np.mean([m.mean() for m in masks])
+    print(f"selected with {sum(p.positive for p in patches)} positive and {sum(not p.positive for p in patches)} "
+          f"negative patch(es) in view {args.view}, threshold {threshold:.2f}, 3D clean-up "
+          f"{'on' if sel.cleanup else 'off'}: {len(masks)} masks covering {100 * cover:.1f}% of pixels on average "
+          f"({time.perf_counter() - t0:.1f} s)")
+    print(f"wrote {out} (mask_0000.png ...), {ws.masks_dir} and {sel_path}")
+    return 0
