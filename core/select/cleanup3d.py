@@ -15,7 +15,8 @@ import torch.nn.functional as tnf
 from torch import Tensor
 
 VOXEL = 2.0 / 128  # field units: the field cube [-1, 1]^3 at 128 voxels a side
-MAX_DIM = 256  # voxels per axis; coarser voxels when the masked points spread wider
+MAX_DIM = 256
+FOOTPRINT_VOXELS = 1.5  # voxel edge in median pixel footprints (grazing surfaces stretch the spacing)  # voxels per axis; coarser voxels when the masked points spread wider
 
 
 def backproject(depth: Tensor, cameras, view: int) -> Tensor:
@@ -51,12 +52,14 @@ def cleanup_masks(masks: list[Tensor], depths: list[Tensor], opacities: list[Ten
     surface point the masks come back unchanged.
     """
     cams = cameras.to("cpu")
-    pts, flat_idx = [], []
+    pts, flat_idx, footprint = [], [], []
     for i, (m, dep, op) in enumerate(zip(masks, depths, opacities)):
         keep = (m.cpu() & (op.cpu() > min_opacity)).reshape(-1)
         idx = keep.nonzero()[:, 0]
         flat_idx.append(idx)
         pts.append(backproject(dep.cpu().float(), cams, i)[idx] if idx.numel() else torch.zeros(0, 3))
+        if idx.numel():  # pixel spacing on the surface: z / focal length
+            footprint.append(dep.reshape(-1)[idx].float().cpu() / float(cams.fx[i]))
     allp = torch.cat(pts)
     seed_pts = []
     for view, p in seeds:
@@ -69,6 +72,8 @@ def cleanup_masks(masks: list[Tensor], depths: list[Tensor], opacities: list[Ten
     if allp.shape[0] == 0 or not seed_pts:
         return [m.clone() for m in masks]
     lo = allp.min(0).values
+    # neighbouring pixels must land in touching voxels: voxels no finer than the pixel footprint
+    voxel = max(voxel, FOOTPRINT_VOXELS * float(torch.cat(footprint).median()))
     span = float((allp.max(0).values - lo).max())
     voxel = max(voxel, span / (MAX_DIM - 1))
     dims = [int(math.floor(float(s) / voxel)) + 1 for s in (allp.max(0).values - lo)]
