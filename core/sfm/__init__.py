@@ -1,0 +1,1 @@
+"""Structure-from-motion on folders of photos (pycolmap): intake, pipeline, cached runner."""

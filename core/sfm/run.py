@@ -1,0 +1,182 @@
+"""Structure-from-motion on a folder of photos, cached in the workspace: `sfm_scene` -> a `Scene`.
+
+Phases (each timed and reported): intake (core.sfm.images), features, matching, mapping (the largest
+model kept; photos it could not register listed by name), undistortion. The result is a COLMAP
+folder `WS/sfm/scene/` read back through the COLMAP loader, plus `WS/sfm/report.json`; a second
+open with the same photos and options skips every phase.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import SceneError
+from core.scene.loaders.colmap import find_model, load_colmap, read_model
+from core.scene.scene import SCENE_KINDS, Scene
+from core.sfm import images as intake
+from core.sfm import pipeline
+from core.workspace import atomic
+
+log = logging.getLogger("repaint_nerf.sfm")
+
+CACHE_VERSION = 1
+PHASES = ("intake", "features", "matching", "mapping", "undistortion")
+Progress = Callable[[str, float, str], None]  # (phase, fraction of that phase done in [0, 1], message)
+
+
+def default_workspace(photos_dir: Path) -> Path:
+    """Where a photo folder's workspace goes when none is given (beside it, as the editor does)."""
+    photos_dir = Path(photos_dir).resolve()
+    return photos_dir.parent / f"{photos_dir.name}.repaint-nerf"
+
+
+def _sfm_dir(workspace_dir: Path) -> Path:
+    from core.workspace.workspace import Workspace
+
+    return Workspace.open_or_create(workspace_dir).path("sfm")
+
+
+def _options(matcher: str, max_side: int) -> dict:
+    return {"version": CACHE_VERSION, "matcher": matcher, "max_side": max_side}
+
+
+def cached_report(photos_dir: Path, workspace_dir: Path, matcher: str = "auto",
+                  max_side: int = intake.MAX_SIDE) -> dict | None:
+    """The saved report when the cache matches these photos and options (and its model exists), else None."""
+    sfm = Path(workspace_dir) / "sfm"
+    try:
+        report = json.loads((sfm / "report.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if report.get("options") != _options(matcher, max_side) or \
+            report.get("fingerprint") != intake.fingerprint(photos_dir) or find_model(sfm / "scene") is None:
+        return None
+    return report
+
+
+def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, progress: Progress | None = None,
+            matcher: str = "auto", max_side: int = intake.MAX_SIDE, force: bool = False) -> dict:
+    """Run (or reuse) structure-from-motion; returns the report.
+
+    Report: {"total", "registered", "unregistered": [names], "skipped": [names], "notes": [...],
+    "seconds": {phase: s}, "matcher", "cached", "scene_dir", "points"}.
+    """
+    photos_dir = Path(photos_dir)
+    workspace_dir = Path(workspace_dir) if workspace_dir is not None else default_workspace(photos_dir)
+    intake.photos_folder(photos_dir)  # a missing folder is a SceneError before anything is created
+    if not force:
+        report = cached_report(photos_dir, workspace_dir, matcher, max_side)
+        if report is not None:
+            report["cached"] = True
+            if progress:
+                progress("cached", 1.0, f"reusing structure-from-motion from {workspace_dir}")
+            return report
+    sfm = _sfm_dir(workspace_dir)
+    say = progress or (lambda phase, frac, msg: None)
+    seconds: dict[str, float] = {}
+
+    def phase(name: str, fn, msg: str):
+        say(name, 0.0, msg)
+        t0 = time.perf_counter()
+        out = fn()
+        seconds[name] = round(time.perf_counter() - t0, 3)
+        log.info("sfm %s: %.2f s", name, seconds[name])
+        say(name, 1.0, f"{name} done in {seconds[name]:.1f} s")
+        return out
+
+    shutil.rmtree(sfm, ignore_errors=True)
+    sfm.mkdir(parents=True)
+    img_dir, db = sfm / "images", sfm / "database.db"
+    photos = phase("intake", lambda: intake.prepare_photos(photos_dir, img_dir, max_side), "reading photos")
+    n = len(photos.names)
+    kind = pipeline.choose_matcher(matcher, n)
+    groups: dict[tuple[int, int], list[str]] = {}
+    for k in photos.names:
+        groups.setdefault(photos.sizes[k], []).append(photos.prepared[k])
+    phase("features", lambda: pipeline.extract(db, img_dir, list(groups.values())),
+          f"extracting features from {n} photos")
+    phase("matching", lambda: pipeline.match(db, kind), f"matching features ({kind})")
+
+    def on_image(k: int) -> None:
+        say("mapping", min(k / n, 1.0), f"registered {min(k, n)} of {n}")
+
+    rec = phase("mapping", lambda: pipeline.reconstruct(db, img_dir, sfm / "models", n, photos_dir, on_image),
+                "incremental mapping")
+    model_dir = sfm / "sparse"
+    model_dir.mkdir()
+    rec.write(str(model_dir))
+    phase("undistortion", lambda: pipeline.undistort(model_dir, img_dir, sfm / "scene"), "undistorting")
+    original = photos.original_of()
+    registered = {original.get(im.name, im.name) for im in rec.images.values() if _has_pose(im)}
+    unregistered = [k for k in photos.names if k not in registered]
+    report = {"total": n, "registered": len(registered), "unregistered": unregistered,
+              "skipped": photos.skipped, "notes": photos.notes, "seconds": seconds, "matcher": kind,
+              "points": int(rec.num_points3D()), "scene_dir": str(sfm / "scene"), "names": original,
+              "options": _options(matcher, max_side), "fingerprint": intake.fingerprint(photos_dir),
+              "cached": False}
+    if unregistered:
+        msg = (f"{len(unregistered)} of {n} photos could not be registered and were dropped: "
+               f"{', '.join(unregistered[:10])}{' ...' if len(unregistered) > 10 else ''}")
+        report["notes"].append(msg)
+        log.warning("sfm: %s", msg)
+        say("mapping", 1.0, msg)
+    for tmp in (db, sfm / "models"):  # only the final model and images are needed to reopen
+        shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+    atomic.write_json(sfm / "report.json", report)
+    return report
+
+
+def _has_pose(im) -> bool:
+    flag = getattr(im, "has_pose", None)
+    return bool(flag if flag is not None else getattr(im, "registered", True))
+
+
+def _visibility(model_dir: Path, names: list[str]) -> list[np.ndarray]:
+    """Per image in `names`: indices into the loader's point array of the points that image observes."""
+    rec = read_model(model_dir)
+    index = {pid: i for i, pid in enumerate(rec.points3D.keys())}  # the loader's order
+    by_name = {im.name: im for im in rec.images.values()}
+    out = []
+    for name in names:
+        im = by_name[name]
+        ids = [p.point3D_id for p in im.points2D if p.has_point3D()]
+        out.append(np.unique(np.asarray([index[i] for i in ids if i in index], dtype=np.int64)))
+    return out
+
+
+def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, progress: Progress | None = None,
+              matcher: str = "auto", downscale: float = 1.0, kind: str | None = None, splits=None,
+              force: bool = False) -> Scene:
+    """A scene from a folder of photos: SfM (cached in `workspace_dir`, default beside the photos).
+
+    The scene keeps the SfM points (with per-image visibility of the train split, for sparse depth),
+    its kind is chosen from the camera layout unless `kind` is given, and `extra['sfm']` holds the report.
+    """
+    from core.scene.kinds import detect_kind
+
+    if kind is not None and kind not in SCENE_KINDS:
+        raise SceneError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
+    report = run_sfm(photos_dir, workspace_dir, progress, matcher, force=force)
+    scene_dir = Path(report["scene_dir"])
+    scene = load_colmap(scene_dir, downscale=downscale, splits=splits)
+    scene.root = Path(photos_dir)
+    scene.format = "photos"
+    originals = report.get("names", {})
+    for split in scene.splits.values():
+        split.names = [originals.get(nm, nm) for nm in split.names]
+    if "train" in scene.splits and scene.points is not None:
+        prepared = {v: k for k, v in originals.items()}
+        scene.extra["visibility"] = _visibility(find_model(scene_dir),
+                                                [prepared.get(nm, nm) for nm in scene.train.names])
+    scene.extra["sfm"] = {k: v for k, v in report.items() if k not in ("fingerprint", "names")}
+    if kind is None:
+        kind, why = detect_kind(scene)
+        scene.extra["kind_reason"] = why
+    scene.kind = kind
+    return scene
