@@ -305,11 +305,13 @@ def test_cli_train_and_render(tiny_scene, field_impl, tmp_path, capsys):
 
     path, _ = tiny_scene
     ws = tmp_path / "ws"
-    assert main(["train", str(path), "--workspace", str(ws), "--steps", "15", "--rays", "512"]) == 0
+    assert main(["train", str(path), "--workspace", str(ws), "--steps", "15", "--rays", "512",
+                 "--max-samples", "128"]) == 0
     out = capsys.readouterr()
     assert "test PSNR" in out.out and "saved version v0001" in out.out
     assert (ws / "checkpoints" / "stage1.safetensors").exists()
-    assert main(["train", str(path), "--workspace", str(ws), "--steps", "20", "--rays", "512", "--resume"]) == 0
+    assert main(["train", str(path), "--workspace", str(ws), "--steps", "20", "--rays", "512",
+                 "--max-samples", "128", "--resume"]) == 0
     assert "resumed at step 15" in capsys.readouterr().out
     outdir = tmp_path / "renders"
     assert main(["render", str(ws), "--split", "test", "--out", str(outdir), "--depth"]) == 0

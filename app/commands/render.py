@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
     device = next(field.parameters()).device
     bg = torch.tensor(scene.background or (1.0, 1.0, 1.0), dtype=torch.float32, device=device)
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
-    opts = RenderOptions(outputs=outputs, background=bg, perturb=False)
+    max_samples = int(header.get("train_config", {}).get("max_samples", 1024))  # render as it was trained
+    opts = RenderOptions(outputs=outputs, background=bg, perturb=False, max_samples=max_samples)
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
 

@@ -24,6 +24,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper)")
+    p.add_argument("--max-samples", type=int, default=None,
+                   help="samples across the field cube's diagonal (default 1024, as instant-ngp); fewer is faster")
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds between checkpoints (0 = at the end)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -47,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
     scene_path = Path(args.scene)
     if not scene_path.exists():
         raise SceneError("no such scene folder", scene_path, hint="pass a dataset or photo folder")
-    for name in ("--steps", "--seconds", "--rays", "--lr"):
-        _positive(name, getattr(args, name[2:]))
+    for name in ("--steps", "--seconds", "--rays", "--lr", "--max-samples"):
+        _positive(name, getattr(args, name[2:].replace("-", "_")))
     seconds = args.seconds if args.seconds is not None or args.steps is not None else 120.0
 
     scene_key = str(scene_path.resolve())
@@ -65,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         cfg.rays_per_batch = args.rays
     if args.lr:
         cfg.lr = args.lr
+    if args.max_samples:
+        cfg.max_samples = args.max_samples
     trainer = Stage1Trainer(scene, ws, cfg, device=args.device)
     if args.resume:
         if trainer.resume():
