@@ -262,7 +262,9 @@ class EditorApp:
         imgui.separator()
         for kind, text in s.messages:
             color = imgui.ImVec4(1, 0.5, 0.4, 1) if kind == "error" else imgui.ImVec4(0.8, 0.8, 0.8, 1)
-            imgui.text_colored(color, text[:300])
+            imgui.push_style_color(imgui.Col_.text, color)
+            imgui.text_wrapped(text[:300])
+            imgui.pop_style_color()
         if not self.worker.alive():
             imgui.text_colored(imgui.ImVec4(1, 0.3, 0.3, 1), "the worker thread stopped")
         imgui.end()

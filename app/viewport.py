@@ -119,7 +119,7 @@ class Viewport:
         elif mode in ("similarity", "mask"):
             prog["threshold"] = float(threshold)
             if mode == "mask":
-                prog["tint"] = (1.0, 0.25, 0.1)
+                prog["tint"] = (1.0, 0.9, 0.1)
                 prog["strength"] = 0.6
         self.fbo.use()
         self.ctx.viewport = (0, 0, w, h)

@@ -88,6 +88,7 @@ class Worker:
         self._serial = 0
         self._served: tuple[int, float] = (-1, 0.0)  # (serial, best scale) already delivered
         self._last_preview = 0.0
+        self._preview_due = False
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.projector = FeatureProjector()
@@ -162,6 +163,9 @@ class Worker:
         resting = (time.perf_counter() - req.time) >= self.rest_s
         if served_serial != req.serial:
             return self.controller.scale
+        if self._preview_due and resting:
+            self._preview_due = False  # the model trained: re-render the resting view sharp, not coarse-first
+            return 1.0
         if served_scale >= 1.0 or not resting:
             return None  # done, or the camera still moves: refine once it rests
         return min(1.0, served_scale * 2.0)
@@ -204,8 +208,7 @@ class Worker:
         now = time.perf_counter()
         if now - self._last_preview >= self.preview_interval_s:
             self._last_preview = now
-            with self._lock:
-                self._served = (-1, 0.0)  # show the model as it trains: re-render the view progressively
+            self._preview_due = True  # show the model as it trains
         return True
 
     def _run(self) -> None:

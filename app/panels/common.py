@@ -13,3 +13,9 @@ def unavailable(app, feature: str) -> bool:
     if imgui.is_item_hovered():
         imgui.set_tooltip(reason)
     return True
+
+
+def remember_item(app, name: str) -> None:
+    """Record the last widget's screen rectangle under `name` (scripted input in tests and benchmarks clicks it)."""
+    a, b = imgui.get_item_rect_min(), imgui.get_item_rect_max()
+    app.cache.setdefault("items", {})[name] = (a.x, a.y, b.x, b.y)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from imgui_bundle import imgui
 
-from app.panels.common import unavailable
+from app.panels.common import remember_item, unavailable
 
 BACKENDS = ("offline", "sd")
 
@@ -28,6 +28,7 @@ def draw(app) -> None:
     if not imgui.collapsing_header("Repaint", imgui.TreeNodeFlags_.default_open.value):
         return
     _, s.prompt = imgui.input_text("Prompt", s.prompt)
+    remember_item(app, "prompt")
     _, s.bg_prompt = imgui.input_text("Background prompt", s.bg_prompt)
     if imgui.begin_combo("Guidance", s.backend):
         for b in BACKENDS:
@@ -50,8 +51,9 @@ def draw(app) -> None:
     if unavailable(app, "repaint"):
         return
     if not s.repaint_running:
-        if imgui.button("Repaint"):
+        if imgui.button("Repaint##start"):  # the header is also "Repaint": a distinct id
             app.start_repaint()
+        remember_item(app, "repaint")
     else:
         st = s.last_status
         done = float(st.get("step", 0)) / max(1, s.steps) if st.get("phase") == "repaint" else 0.0
@@ -64,6 +66,7 @@ def draw(app) -> None:
             s.repaint_running = False
     if imgui.button("Undo"):
         app.call("undo")
+    remember_item(app, "undo")
     imgui.same_line()
     if imgui.button("Redo"):
         app.call("redo")
