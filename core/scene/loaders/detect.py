@@ -2,7 +2,8 @@
 
 Formats: NeRF-synthetic/Blender, nerfstudio `transforms.json`, LLFF `poses_bounds.npy`, COLMAP
 sparse models. A folder of bare photos needs structure-from-motion first: when
-`core.sfm.run.sfm_scene(root, downscale=...) -> Scene` exists it is called, else a `SceneError` says so.
+`core.sfm.run.sfm_scene(root, downscale=..., workspace_dir=..., splits=...) -> Scene` exists it is called (its
+result cached in the workspace, by default beside the photos), else a `SceneError` says so.
 """
 from __future__ import annotations
 
@@ -69,30 +70,34 @@ def _sfm_hook():
     return getattr(mod, "sfm_scene", None)
 
 
-def _load_photos(root: Path, downscale: float, splits) -> Scene:
+def _load_photos(root: Path, downscale: float, splits, workspace=None) -> Scene:
     sfm = _sfm_hook()
     if sfm is None:
         raise SceneError("this folder holds photos without camera poses: structure-from-motion is needed", root,
                          hint="run `repaint-nerf sfm` on it first (not available in this version yet)")
-    return sfm(root, downscale=downscale)
+    more = {k: v for k, v in (("workspace_dir", workspace), ("splits", splits)) if v is not None}
+    return sfm(root, downscale=downscale, **more)
 
 
 LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_llff, "colmap": load_colmap,
            "photos": _load_photos}
 
 
-def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None) -> Scene:
+def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None,
+               workspace: str | Path | None = None) -> Scene:
     """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
 
     `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind
-    ('forward' for LLFF, 'bounded' otherwise); `splits` restricts which splits' images are read.
+    ('forward' for LLFF, 'bounded' otherwise); `splits` restricts which splits' images are read;
+    `workspace` is where structure-from-motion on a photo folder caches its result.
     """
     downscale = check_downscale(downscale)
     if kind is not None and kind not in SCENE_KINDS:
         raise UserError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
     splits = None if splits is None else ((splits,) if isinstance(splits, str) else tuple(splits))
     fmt, root = detect_format(path)
-    scene = LOADERS[fmt](root, downscale=downscale, splits=splits)
+    extra_args = {"workspace": workspace} if fmt == "photos" else {}
+    scene = LOADERS[fmt](root, downscale=downscale, splits=splits, **extra_args)
     if not scene.splits or sum(len(s) for s in scene.splits.values()) == 0:
         raise SceneError(f"no images loaded (requested splits: {', '.join(splits or ('all',))})", root)
     if kind is not None:

@@ -1,0 +1,206 @@
+"""Structure-from-motion on rendered photos: poses against the truth, cache, report, CLI and bad input."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from core.errors import SceneError
+from core.sfm.evaluate import align_similarity, pose_errors
+from core.sfm.images import prepare_photos
+
+VIEWS, W, H = 20, 240, 180
+
+
+def _write(path: Path, img: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGRA if img.shape[2] == 4 else cv2.COLOR_RGB2BGR)
+    cv2.imwrite(str(path), img)
+
+
+def _noise(h: int, w: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 255, (h // 8 + 1, w // 8 + 1, 3), dtype=np.uint8)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+@pytest.fixture(scope="module")
+def sfm_run(tmp_path_factory):
+    """20 views of the room360 preset plus an unrelated photo and a text file, through SfM once."""
+    from core.sfm.run import sfm_scene
+    from core.sfm.synthetic import render_photos
+
+    root = tmp_path_factory.mktemp("sfm")
+    photos = root / "photos"
+    truth = render_photos("room360", photos, VIEWS, W, H, seed=1)
+    _write(photos / "zz_unrelated.png", _noise(H, W, 7))
+    (photos / "notes.txt").write_text("not a photo")
+    phases = []
+    t0 = time.perf_counter()
+    scene = sfm_scene(photos, root / "ws", progress=lambda p, f, m: phases.append((p, f)))
+    return {"root": root, "photos": photos, "truth": truth, "scene": scene, "phases": phases,
+            "seconds": time.perf_counter() - t0}
+
+
+def test_recovered_poses_match_the_truth(sfm_run):
+    scene, truth = sfm_run["scene"], sfm_run["truth"]
+    names = [n for s in scene.splits.values() for n in s.names]
+    assert sorted(names) == sorted(truth["names"])  # every rendered view registered
+    c2w = np.concatenate([s.cameras.c2w.double().numpy() for s in scene.splits.values()])
+    gt = truth["c2w"][[truth["names"].index(n) for n in names]]
+    err = pose_errors(c2w, gt)
+    assert err["rotation_deg_max"] < 1.0, err
+    assert err["position_rel_max"] < 0.01, err
+    assert abs(float(scene.train.cameras.fx[0]) / truth["fx"] - 1.0) < 0.02  # focal length recovered too
+
+
+def test_report_lists_dropped_and_skipped_files(sfm_run):
+    rep = sfm_run["scene"].extra["sfm"]
+    assert rep["total"] == VIEWS + 1 and rep["registered"] == VIEWS
+    assert rep["unregistered"] == ["zz_unrelated.png"]
+    assert rep["skipped"] == ["notes.txt"]
+    assert any("could not be registered" in n and "zz_unrelated.png" in n for n in rep["notes"])
+    assert set(rep["seconds"]) == {"intake", "features", "matching", "mapping", "undistortion"}
+    seen = {p for p, f in sfm_run["phases"] if f >= 1.0}
+    assert set(rep["seconds"]) <= seen
+
+
+def test_scene_kind_points_and_sparse_depth(sfm_run):
+    from core.teachers.depth_sparse import depth_for_scene
+
+    scene = sfm_run["scene"]
+    assert scene.format == "photos" and scene.kind == "unbounded"
+    assert scene.points is not None and len(scene.points) > 100
+    assert len(scene.extra["visibility"]) == len(scene.train)
+    priors = depth_for_scene(scene)
+    cams = scene.train.cameras
+    assert priors.source == "sfm-points" and len(priors) == len(cams)
+    for i in range(len(cams)):
+        sd = priors.for_image(i)
+        assert len(sd.z) > 20 and np.all(sd.z > 0)
+    vis = scene.extra["visibility"][0]  # points the first image observes project inside it, in front
+    uv, z = cams.project(torch.as_tensor(scene.points[vis], dtype=torch.float32), 0)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < cams.width[0]) & (uv[:, 1] >= 0) & (uv[:, 1] < cams.height[0])
+    assert bool((z > 0).all()) and float(inside.float().mean()) > 0.98
+
+
+def test_second_open_is_cached_and_load_scene_uses_it(sfm_run):
+    from core.scene.loaders.detect import load_scene
+
+    t0 = time.perf_counter()
+    scene = load_scene(sfm_run["photos"], workspace=sfm_run["root"] / "ws")
+    took = time.perf_counter() - t0
+    assert scene.extra["sfm"]["cached"] and took < max(0.5 * sfm_run["seconds"], 2.0)
+    first = sfm_run["scene"]
+    assert scene.train.names == first.train.names
+    assert np.allclose(scene.train.cameras.c2w.numpy(), first.train.cameras.c2w.numpy())
+    assert scene.norm.scale > 0 and scene.kind == "unbounded"
+
+
+def test_cli_writes_the_json_report(sfm_run, capsys):
+    from app.cli import main
+
+    out = sfm_run["root"] / "report.json"
+    assert main(["sfm", str(sfm_run["photos"]), "--workspace", str(sfm_run["root"] / "ws"),
+                 "--json", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["total"] == VIEWS + 1 and rep["registered"] == VIEWS
+    assert rep["unregistered"] == ["zz_unrelated.png"] and set(rep["seconds"]) >= {"features", "mapping"}
+    assert "zz_unrelated.png" in capsys.readouterr().out
+
+
+def test_similarity_alignment_is_exact_on_transformed_points():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(10, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    rot = q * np.sign(np.linalg.det(q))
+    dst = 2.5 * src @ rot.T + np.array([1.0, -2.0, 0.5])
+    s, r, t = align_similarity(src, dst)
+    assert abs(s - 2.5) < 1e-9 and np.allclose(r, rot) and np.allclose(t, [1.0, -2.0, 0.5])
+
+
+# ---- bad input -------------------------------------------------------------------------------------
+
+def test_fewer_than_three_photos(tmp_path):
+    from core.sfm.run import sfm_scene
+
+    for i in range(2):
+        _write(tmp_path / "p" / f"a{i}.png", _noise(64, 64, i))
+    with pytest.raises(SceneError, match="at least 3 photos") as info:
+        sfm_scene(tmp_path / "p", tmp_path / "ws")
+    assert str(tmp_path / "p") in str(info.value)
+
+
+def test_cli_bad_input_is_a_message_not_a_traceback(tmp_path, capsys):
+    from app.cli import main
+
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "readme.md").write_text("x")
+    assert main(["sfm", str(tmp_path / "p"), "--workspace", str(tmp_path / "ws")]) == 2
+    err = capsys.readouterr().err
+    assert "error: " in err and "Traceback" not in err and "readme.md" in err and "at least 3 photos" in err
+
+
+def test_nothing_registers(tmp_path):
+    from core.sfm.run import sfm_scene
+
+    for i in range(3):
+        _write(tmp_path / "p" / f"n{i}.png", _noise(96, 128, 10 + i))
+    with pytest.raises(SceneError, match="could not register any") as info:
+        sfm_scene(tmp_path / "p", tmp_path / "ws")
+    assert str(tmp_path / "p") in str(info.value)
+
+
+def test_intake_handles_exif_gray_alpha_large_mixed_and_junk(tmp_path):
+    from PIL import Image
+
+    src = tmp_path / "p"
+    src.mkdir()
+    base = _noise(60, 80, 0)
+    Image.fromarray(base).save(src / "a_plain.jpg", quality=95)
+    exif = Image.Exif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise to display
+    Image.fromarray(base).save(src / "b_rotated.jpg", exif=exif, quality=95)
+    _write(src / "c_gray.png", cv2.cvtColor(base, cv2.COLOR_RGB2GRAY))
+    rgba = np.dstack([base, np.full(base.shape[:2], 255, np.uint8)])
+    rgba[:10, :10, 3] = 0
+    _write(src / "d_alpha.png", rgba)
+    _write(src / "e_large.png", cv2.resize(base, (400, 300)))
+    (src / "f_broken.png").write_bytes(b"not a png")
+    (src / "g.txt").write_text("x")
+    out = tmp_path / "out"
+    intake = prepare_photos(src, out, max_side=200)
+    assert intake.names == ["a_plain.jpg", "b_rotated.jpg", "c_gray.png", "d_alpha.png", "e_large.png"]
+    assert intake.skipped == ["g.txt", "f_broken.png"]
+    assert intake.sizes["b_rotated.jpg"] == (60, 80) and intake.sizes["e_large.png"] == (200, 150)
+    assert (out / intake.prepared["a_plain.jpg"]).read_bytes() == (src / "a_plain.jpg").read_bytes()
+    rot = cv2.imread(str(out / intake.prepared["b_rotated.jpg"]))
+    assert rot.shape == (80, 60, 3)
+    gray = cv2.imread(str(out / intake.prepared["c_gray.png"]), cv2.IMREAD_UNCHANGED)
+    assert gray.ndim == 3 and gray.shape[2] == 3
+    alpha = cv2.imread(str(out / intake.prepared["d_alpha.png"]), cv2.IMREAD_UNCHANGED)
+    assert alpha.shape[2] == 3 and (alpha[:10, :10] == 255).all()  # transparent -> white
+    text = " ".join(intake.notes)
+    for word in ("non-image", "f_broken.png", "rotated", "grayscale", "alpha", "downscaled", "mixed sizes"):
+        assert word in text, (word, text)
+
+
+@pytest.mark.slow
+def test_field_trained_on_recovered_poses(sfm_run):
+    """A field fitted for a few seconds on the SfM poses beats a stated PSNR on the held-out views."""
+    pytest.importorskip("core.field.field")
+    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from core.workspace.workspace import Workspace
+
+    scene = sfm_run["scene"]
+    ws = Workspace.open_or_create(sfm_run["root"] / "ws")
+    trainer = Stage1Trainer(scene, ws, TrainConfig(seed=0))
+    trainer.train(seconds=20.0)
+    ev = trainer.evaluate()
+    assert ev["psnr"] > 18.0, ev
