@@ -1,0 +1,457 @@
+"""The repaint trainer (paper stage 2, Eq. s2): loss = guidance + lambda_unmask * L_unmask + lambda_clip * L_clip.
+
+Each step renders one whole training view (random, at a resolution that fits the device) with
+gradients, asks the guidance for its loss on the render and mask, holds the pixels outside the mask to
+the original training image (Eq. unmask) and optionally pulls the masked-out render toward the
+background prompt (Eq. clip). Adan updates the field; the occupancy grid keeps updating, and the
+selection's 3D region is marked occupied at the start so new content can grow there.
+
+Only what the edit needs is computed: the renderer is asked for 'rgb' only (no feature head in the
+backward pass), per-view rays, targets and masks are prepared once, CLIP is never loaded when
+lambda_clip is 0. A non-finite guidance gradient or loss skips the step (counted in `skipped_steps`).
+The trainer can pause, resume and cancel from another thread; a cancelled edit restores the field;
+a finished one is saved as a new workspace version (undo goes back; the original is never overwritten).
+"""
+from __future__ import annotations
+
+import dataclasses
+import re
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+import torch
+from torch import Tensor
+
+from core.device import get_device, is_cuda, synchronize
+from core.errors import UserError
+from core.render.renderer import RenderOptions, render_camera, render_rays
+from core.repaint import offline
+from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
+from core.train.checkpoint import Checkpoint, split_state
+from core.train.schedule import LRSchedule
+
+GUIDANCES = ("sd", "recolor", "remove", "analytic")
+CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
+REMOVE_WORDS = re.compile(r"\b(remove|delete|erase|get rid of|take away|without)\b", re.I)
+
+
+@dataclass
+class RepaintConfig:
+    """Stage-2 settings. The paper runs 10000 steps at 400x400 on a GPU; our default of 300 steps at
+    <= 128 px is what a CPU finishes in minutes (offline and analytic edits converge in that)."""
+
+    steps: int = 300
+    resolution: int | None = None  # render long side; None = training size capped at 128 (CPU) / 400 (CUDA)
+    lambda_unmask: float = 100.0  # paper Eq. s2 (official code: 100)
+    lambda_clip: float = 0.0  # official code: 0.01 with Stable Diffusion; 0 loads no CLIP
+    optimizer: str = "paper"  # 'paper': Adan 1e-3 decaying to 1e-4; 'official': 5e-3, 10x on the grid, constant
+    lr: float | None = None  # overrides the preset's base rate
+    mask_dilation: int = 0  # pixels added around the mask (the unmask loss leaves them free)
+    snapshot_every: int = 25  # steps between preview snapshots (0 = none)
+    snapshot_view: int = 0
+    seed: int = 0
+    max_samples: int = 512
+    t_threshold: float = 1e-3
+    perturb: bool = True
+    grow_region: bool = True  # mark the selection's 3D cells occupied at the start
+    region_resolution: int = 64
+    recolor_mode: str = "shading"
+    remove_clear_weight: float = 10.0
+
+
+def default_resolution(width: int, height: int, device: torch.device) -> int:
+    """The render's long side: the training image's, capped at 400 on CUDA and 128 on CPU."""
+    return min(max(width, height), CUDA_RESOLUTION if is_cuda(device) else CPU_RESOLUTION)
+
+
+def offline_kind(prompt: str) -> str:
+    """'remove' when the prompt asks to remove (remove, delete, erase, ...), else 'recolor'."""
+    return "remove" if REMOVE_WORDS.search(prompt or "") else "recolor"
+
+
+def _resize(img: np.ndarray, w: int, h: int, interp=cv2.INTER_AREA) -> np.ndarray:
+    return img if img.shape[1] == w and img.shape[0] == h else cv2.resize(img, (w, h), interpolation=interp)
+
+
+def _composite(img: np.ndarray, bg: Tensor) -> Tensor:
+    """uint8 (H, W, 3|4) -> float (H, W, 3) over `bg` on its device."""
+    t = torch.from_numpy(np.ascontiguousarray(img)).to(bg.device).float() / 255.0
+    if t.shape[-1] == 4:
+        return t[..., :3] * t[..., 3:4] + bg * (1 - t[..., 3:4])
+    return t[..., :3]
+
+
+def edited_images(scene) -> list[np.ndarray]:
+    """The synthetic scene's edited/ variant of each training image (same names), for the analytic guidance."""
+    root = Path(scene.root)
+    folder = root / "edited"
+    if not (folder / "transforms_train.json").is_file():
+        raise UserError("this scene has no edited/ variant (edited/transforms_train.json)", root,
+                        hint="the analytic guidance needs a synthetic scene from `repaint-nerf make-scene`; "
+                             "use --guidance sd, recolor or remove")
+    out = []
+    for i, p in enumerate(scene.train.paths or []):
+        rel = Path(p).relative_to(root) if Path(p).is_absolute() else Path(p)
+        img = cv2.imread(str(folder / rel), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise UserError("an edited image is missing", folder / rel, hint="regenerate the scene")
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[-1] == 4 else cv2.COLOR_BGR2RGB)
+        h, w = scene.train.images[i].shape[:2]
+        out.append(_resize(img, w, h))
+    if len(out) != len(scene.train):
+        raise UserError("the scene's training images have no file paths to match edited/ against", root)
+    return out
+
+
+class RepaintTrainer:
+    """Edits `field` in place under a guidance; see the module docstring.
+
+    `guidance` is a Guidance object or one of GUIDANCES ('offline' picks recolor or remove from the
+    prompt); `masks` are bool (H, W) per training view (default: the workspace's, from `select`).
+    `on_snapshot(info)` gets {'step', 'rgb' (H, W, 3) numpy preview, 'view'} every `snapshot_every` steps.
+    """
+
+    def __init__(self, scene, field, grid, workspace=None, masks: list[np.ndarray] | None = None,
+                 guidance: Any = None, prompt: str = "", bg_prompt: str = "", backend: str | None = None,
+                 config: RepaintConfig | None = None, device: torch.device | str | None = None,
+                 sd_path=None, clip_path=None, color=None, negative_prompt: str = "",
+                 on_snapshot: Callable[[dict], Any] | None = None, **overrides):
+        self.scene, self.field, self.grid, self.workspace = scene, field, grid, workspace
+        self.prompt, self.bg_prompt = prompt, bg_prompt
+        cfg = config or RepaintConfig()
+        unknown = set(overrides) - {f.name for f in dataclasses.fields(RepaintConfig)}
+        if unknown:
+            raise TypeError(f"unknown repaint options {sorted(unknown)}")
+        self.cfg = dataclasses.replace(cfg, **overrides)
+        if self.cfg.steps < 1:
+            raise UserError(f"steps must be at least 1, got {self.cfg.steps}")
+        if self.cfg.lambda_unmask < 0 or self.cfg.lambda_clip < 0:
+            raise UserError("lambda_unmask and lambda_clip must not be negative")
+        self.device = device if isinstance(device, torch.device) else (
+            next(field.parameters()).device if device is None else get_device(device))
+        self.on_snapshot = on_snapshot
+        self.gen = torch.Generator().manual_seed(self.cfg.seed)
+
+        bg = scene.background if scene.background is not None else (1.0, 1.0, 1.0)
+        self.background = torch.tensor(bg, dtype=torch.float32, device=self.device)
+        self._prepare_views(masks)
+        self._initial = self._state_copy()
+        kind = backend if guidance is None else guidance
+        self.kind = kind if isinstance(kind, str) else type(kind).__name__
+        self.guidance = self._build_guidance(kind, sd_path, color, negative_prompt)
+        self.clip = self._build_clip(clip_path)
+
+        self.optimizer = self._make_optimizer()
+        self.schedule = LRSchedule("exp", 0.1) if self.cfg.optimizer == "paper" else LRSchedule("const")
+        self.step_count = 0
+        self.train_seconds = 0.0
+        self.skipped_steps = 0
+        self.done = False
+        self.cancelled = False
+        self.version = None
+        self.history: list[dict] = []
+        self._paused = threading.Event()
+        self._cancel = threading.Event()
+        self._lock = threading.RLock()
+        # Start the grid's step counter past its warm-up so updates sample (not sweep) the grid.
+        self._grid_step0 = ((getattr(grid, "warmup_steps", 0) // 16) + 1) * 16 if grid is not None else 0
+        self.region = None
+        if self.cfg.grow_region and getattr(self.guidance, "grow_region", True) and grid is not None:
+            self.region = self._region()
+            offline.mark_region_occupied(grid, self.region, self.bound)
+
+    # -- set-up -------------------------------------------------------------------------------------
+    @property
+    def bound(self) -> float:
+        cfg = getattr(self.field, "cfg", None)
+        return float(getattr(cfg, "bound", getattr(self.field, "bound", 1.0)))
+
+    def _prepare_views(self, masks) -> None:
+        split = self.scene.train
+        n = len(split)
+        if masks is None:
+            if self.workspace is None:
+                raise UserError("no selection to repaint", hint="run `repaint-nerf select` first")
+            from core.select.masks import load_masks
+
+            masks = load_masks(self.workspace.masks_dir)
+        if len(masks) != n:
+            raise UserError(f"the selection has {len(masks)} masks for {n} training views",
+                            getattr(self.workspace, "masks_dir", None),
+                            hint="make the selection again: repaint-nerf select")
+        if not any(np.asarray(m).any() for m in masks):
+            raise UserError("the selection is empty in every view",
+                            hint="select again with a lower threshold or another patch")
+        w0, h0 = int(split.images[0].shape[1]), int(split.images[0].shape[0])
+        res = self.cfg.resolution or default_resolution(w0, h0, self.device)
+        self.scale = min(1.0, res / max(w0, h0))
+        cams = self.scene.field_cameras("train").scaled(self.scale).to(self.device)
+        self.cameras = cams
+        self.rays, self.images, self.masks, self.keep = [], [], [], []
+        for i in range(n):
+            w, h = int(cams.width[i]), int(cams.height[i])
+            img = _composite(_resize(np.asarray(split.images[i]), w, h), self.background)
+            m = _resize(np.asarray(masks[i], np.float32), w, h) > 0.5
+            m = torch.from_numpy(m).to(self.device).float()
+            m = offline.dilate(m, self.cfg.mask_dilation)
+            o, d, _ = cams.image_rays(i)
+            self.rays.append((o, d))
+            self.images.append(img)
+            self.masks.append(m)
+            self.keep.append(1.0 - m)
+        self.size = (int(cams.height[0]), int(cams.width[0]))
+
+    def _region(self) -> Tensor:
+        return offline.selection_region(self.cameras, self.masks, self.bound, self.cfg.region_resolution)
+
+    def _build_guidance(self, kind, sd_path, color, negative_prompt):
+        if not isinstance(kind, str):
+            if not hasattr(kind, "loss"):
+                raise TypeError("guidance must have loss(rgb, mask, view, step)")
+            return kind
+        if kind == "offline":
+            kind = offline_kind(self.prompt)
+            self.kind = kind
+        if kind == "recolor":
+            from core.repaint.colors import resolve_color
+
+            rgb = resolve_color(self.prompt, color)
+            return offline.RecolorGuidance(self.images, self.masks, rgb, self.cfg.recolor_mode)
+        if kind == "remove":
+            region = offline.selection_region(self.cameras, self.masks, self.bound, self.cfg.region_resolution)
+            # Inpaint (and leave free of the unmask loss) a rim around the object's soft edges too.
+            rim = max(1, round(max(self.size) / 64))
+            self.masks = [offline.dilate(m, rim) for m in self.masks]
+            self.keep = [1.0 - m for m in self.masks]
+            return offline.RemoveGuidance(self.images, self.masks, region, self.bound,
+                                          clear_weight=self.cfg.remove_clear_weight, seed=self.cfg.seed)
+        if kind == "analytic":
+            from core.repaint.analytic import AnalyticGuidance
+
+            targets = [_composite(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
+                       for im in edited_images(self.scene)]
+            return AnalyticGuidance(targets, seed=self.cfg.seed)
+        if kind == "sd":
+            from core.repaint import build_guidance
+
+            settings = self.workspace.settings if self.workspace is not None else None
+            return build_guidance("sd", prompt=self.prompt, negative_prompt=negative_prompt, sd_path=sd_path,
+                                  settings=settings, device=self.device, seed=self.cfg.seed)
+        raise UserError(f"unknown guidance {kind!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
+
+    def _build_clip(self, clip_path):
+        if self.cfg.lambda_clip <= 0:
+            return None
+        from core.models.paths import resolve_model_path
+        from core.repaint.clip_loss import build_clip_loss
+
+        settings = self.workspace.settings if self.workspace is not None else None
+        resolve_model_path("clip", clip_path, settings)  # a missing model fails now, not at step 1
+        return build_clip_loss(self.cfg.lambda_clip, self.bg_prompt, clip_path, settings, device=self.device)
+
+    def _make_optimizer(self) -> Adan:
+        groups = (self.field.parameter_groups() if hasattr(self.field, "parameter_groups")
+                  else {"all": list(self.field.parameters())})
+        groups = {k: v for k, v in groups.items() if k != "feature"}  # never rendered, never decayed
+        if self.cfg.optimizer == "paper":
+            lr, mult = self.cfg.lr or PAPER_LR, {}
+        elif self.cfg.optimizer == "official":
+            lr, mult = self.cfg.lr or OFFICIAL_LR, OFFICIAL_MULTIPLIERS
+        else:
+            raise UserError(f"unknown optimizer preset {self.cfg.optimizer!r}", hint="use 'paper' or 'official'")
+        return Adan(param_groups(groups, lr, mult))
+
+    def _state_copy(self) -> dict:
+        st = {"field": {k: v.detach().clone() for k, v in self.field.state_dict().items()}}
+        if self.grid is not None:
+            st["grid"] = {k: (v.clone() if isinstance(v, Tensor) else v) for k, v in self.grid.state_dict().items()}
+        return st
+
+    # -- one step -----------------------------------------------------------------------------------
+    def render_view(self, view: int, grad: bool = True) -> Tensor:
+        """Render training view `view` at the edit resolution as (1, 3, H, W) (rgb only)."""
+        o, d = self.rays[view]
+        opts = RenderOptions(outputs=("rgb",), background=self.background, t_threshold=self.cfg.t_threshold,
+                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb and grad)
+        with torch.set_grad_enabled(grad):
+            out = render_rays(self.field, self.grid, o, d, opts)
+        h, w = self.size
+        return out["rgb"].reshape(h, w, 3).permute(2, 0, 1)[None]
+
+    def unmask_loss(self, rgb: Tensor, view: int) -> Tensor:
+        """Paper Eq. unmask: mean squared error to the original image over the pixels outside the mask."""
+        target = self.images[view].permute(2, 0, 1)[None]
+        keep = self.keep[view][None, None]
+        return (((rgb.float() - target) ** 2) * keep).sum() / (3 * keep.sum()).clamp_min(1.0)
+
+    def step(self) -> dict:
+        """One edit step on a random view; returns its losses and whether it was skipped."""
+        with self._lock:
+            t0 = time.perf_counter()
+            self.field.train()
+            if self.grid is not None:
+                self.grid.update(self._grid_step0 + self.step_count, self.field.density)
+            progress = self.step_count / max(1, self.cfg.steps)
+            self.optimizer.set_lr_factor(self.schedule.factor(progress))
+            view = int(torch.randint(0, len(self.rays), (1,), generator=self.gen))
+            rgb = self.render_view(view)
+            mask = self.masks[view][None, None]
+            g = self.guidance.loss(rgb, mask, view, self.step_count)
+            info: dict[str, Any] = {"view": view, "t": int(g.get("t", 0)), "guidance": float(g["loss"].detach())}
+            skipped = bool(g.get("skipped", False))
+            self.optimizer.zero_grad(set_to_none=True)
+            if not skipped:
+                unmask = self.unmask_loss(rgb, view)
+                total = g["loss"].float() + self.cfg.lambda_unmask * unmask
+                info["unmask"] = float(unmask.detach())
+                if self.clip is not None:
+                    c = self.clip.loss(rgb, mask).float()
+                    total = total + self.cfg.lambda_clip * c.to(total.device)
+                    info["clip"] = float(c.detach())
+                extra = getattr(self.guidance, "field_loss", None)
+                if extra is not None:
+                    fl = extra(self.field, self.step_count)
+                    if fl is not None:
+                        total = total + fl
+                        info["field"] = float(fl.detach())
+                if bool(torch.isfinite(total)):
+                    total.backward()
+                    before = self.optimizer.skipped_steps
+                    self.optimizer.step()
+                    skipped = self.optimizer.skipped_steps > before
+                else:
+                    skipped = True
+                info["loss"] = float(total.detach())
+            if skipped:
+                self.skipped_steps += 1
+                self.optimizer.zero_grad(set_to_none=True)
+            self.step_count += 1
+            synchronize(self.device)
+            dt = time.perf_counter() - t0
+            self.train_seconds += dt
+            info.update(step=self.step_count, skipped=skipped, skipped_steps=self.skipped_steps, seconds=dt,
+                        phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]))
+            self.history.append(info)
+            if self.on_snapshot is not None and self.cfg.snapshot_every and \
+                    self.step_count % self.cfg.snapshot_every == 0:
+                self.on_snapshot(self.snapshot())
+            if self.step_count >= self.cfg.steps:
+                self.finish()
+                info["done"] = True
+            return info
+
+    @torch.no_grad()
+    def snapshot(self, view: int | None = None) -> dict:
+        """A preview render of a training view at the edit resolution: {'step', 'view', 'rgb' (H, W, 3) numpy}."""
+        v = self.cfg.snapshot_view if view is None else view
+        rgb = self.render_view(min(v, len(self.rays) - 1), grad=False)[0].permute(1, 2, 0).clamp(0, 1)
+        return {"step": self.step_count, "view": v, "rgb": rgb.cpu().numpy()}
+
+    # -- running, pausing, cancelling ---------------------------------------------------------------
+    def pause(self) -> None:
+        """Stop stepping after the current step until `resume` (thread-safe)."""
+        self._paused.set()
+
+    def resume(self) -> None:
+        self._paused.clear()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    def cancel(self) -> None:
+        """Stop the edit and restore the field and grid as they were before it (thread-safe)."""
+        self._cancel.set()
+        with self._lock:
+            if not self.cancelled and not self.done:
+                self.field.load_state_dict(self._initial["field"])
+                if self.grid is not None and "grid" in self._initial:
+                    self.grid.load_state_dict(self._initial["grid"])
+                self.cancelled = True
+
+    def run(self, callback: Callable[[dict], Any] | None = None, poll: float = 0.05) -> dict | None:
+        """Step until done or cancelled (waiting while paused); `callback(info)` after each step."""
+        info = None
+        while not self.done and not self._cancel.is_set():
+            if self._paused.is_set():
+                time.sleep(poll)
+                continue
+            info = self.step()
+            if callback is not None:
+                callback(info)
+        return info
+
+    def train_for(self, seconds: float) -> dict:
+        """Step for about `seconds` (at least one step); the editor's worker calls this between renders."""
+        info: dict = {"phase": "repaint", "step": self.step_count, "done": self.done}
+        t_end = time.perf_counter() + seconds
+        while not self.done and not self._cancel.is_set() and not self._paused.is_set():
+            info = self.step()
+            if time.perf_counter() >= t_end:
+                break
+        info = dict(info)
+        info["done"] = self.done
+        return info
+
+    # -- saving ---------------------------------------------------------------------------------------
+    def checkpoint(self) -> Checkpoint:
+        """The edited field and grid in the stage-1 checkpoint layout (loads with restore_field)."""
+        from core.train.stage1 import scene_facts
+
+        tensors = {f"field.{k}": v.detach().cpu() for k, v in self.field.state_dict().items()}
+        grid_t, grid_rest = split_state(self.grid.state_dict())
+        tensors.update({f"grid.{k}": v for k, v in grid_t.items()})
+        header = {
+            "kind": "edit",
+            "field_config": dataclasses.asdict(self.field.cfg),
+            "grid": {"resolution": self.grid.resolution, "cascades": self.grid.cascades, "bound": self.grid.bound,
+                     "state": grid_rest},
+            "scene": scene_facts(self.scene),
+            "edit": {"guidance": self.kind, "prompt": self.prompt, "bg_prompt": self.bg_prompt,
+                     "steps": self.step_count, "skipped_steps": self.skipped_steps,
+                     "config": dataclasses.asdict(self.cfg)},
+        }
+        return Checkpoint(tensors, header)
+
+    def finish(self) -> None:
+        """Mark the edit done and save it as a new workspace version (when there is a workspace)."""
+        if self.done:
+            return
+        self.done = True
+        self.field.eval()
+        if self.workspace is not None:
+            name = f"{self.kind}: {self.prompt}".strip().rstrip(":")
+            self.version = self.workspace.save_version(name[:80], self.checkpoint(), kind="edit")
+
+    def evaluate(self, split: str = "test", masks: list[np.ndarray] | None = None,
+                 targets: list[np.ndarray] | None = None) -> dict:
+        """Render a split: PSNR inside `masks` against `targets` and outside against the split's images."""
+        cams = self.scene.field_cameras(split).to(self.device)
+        data = self.scene.split(split)
+        opts = RenderOptions(outputs=("rgb",), background=self.background, max_samples=self.cfg.max_samples,
+                             t_threshold=self.cfg.t_threshold)
+        self.field.eval()
+        se_in = n_in = se_out = n_out = 0.0
+        for i in range(len(data)):
+            rgb = render_camera(self.field, self.grid, cams, i, opts)["rgb"].clamp(0, 1)
+            m = torch.from_numpy(np.asarray(masks[i], bool)).to(self.device) if masks is not None else \
+                torch.zeros(rgb.shape[:2], dtype=torch.bool, device=self.device)
+            orig = _composite(np.asarray(data.images[i]), self.background)
+            d_out = ((rgb - orig) ** 2).sum(-1)
+            se_out += float(d_out[~m].sum())
+            n_out += 3 * float((~m).sum())
+            if targets is not None:
+                tgt = _composite(np.asarray(targets[i]), self.background)
+                se_in += float(((rgb - tgt) ** 2).sum(-1)[m].sum())
+                n_in += 3 * float(m.sum())
+        self.field.train()
+
+        def ps(se, n):
+            return float("nan") if n == 0 else (float("inf") if se == 0 else -10 * np.log10(se / n))
+
+        return {"psnr_masked": ps(se_in, n_in), "psnr_unmasked": ps(se_out, n_out)}
