@@ -131,6 +131,12 @@ class CompiledEncoder:
         self.fallback = fallback
         self.failed = False
         self.ok = False
+        import torch._dynamo
+
+        # each grid shape and grad mode is one compiled variant: a field plus its feature grid, training and
+        # rendering, need more than dynamo's default of 8
+        cfg = torch._dynamo.config
+        cfg.recompile_limit = max(getattr(cfg, "recompile_limit", 8), 64)
         self._fn = torch.compile(encode_vectorized, dynamic=True)
 
     def __call__(self, x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
