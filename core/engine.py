@@ -83,7 +83,7 @@ class Engine:
         if not path.exists():
             raise UserError("no such dataset, photo folder or workspace", path,
                             hint="check the path, or open the demo scene")
-        scene = _backend("load").load_scene(path)
+        scene = _backend("load").load_scene(path, workspace=workspace)  # a photo folder caches its SfM there
         _backend("field"), _backend("render")  # a clear "not available" before any work
         ws_mod = _backend("workspace")
         # Default workspace: next to the data, so the dataset folder itself is never written to.

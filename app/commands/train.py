@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
                              hint="pass a new folder to --workspace")
     ws.update_settings(scene=scene_key, downscale=args.downscale)
 
-    scene = load_scene(scene_path, args.downscale)
+    scene = load_scene(scene_path, args.downscale, workspace=args.workspace)  # SfM of a photo folder is cached there
     cfg = TrainConfig(seed=args.seed, checkpoint_every_s=args.checkpoint_every)
     if args.rays:
         cfg.rays_per_batch = args.rays
