@@ -43,7 +43,6 @@ class RenderOptions:
     strategy: str = "auto"  # auto | filter (2 passes; always with grad) | rounds (1 pass, no grad)
     seg_steps: int = 16  # steps per coarse skipping segment
     seg_window: int = 8  # segments a ray looks ahead per marching round
-    round_samples: int = 1 << 16  # target candidate samples per marching round
     profile: bool = False  # per-stage seconds in stats['time'] (synchronises the device)
 
 
@@ -123,6 +122,7 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
     alive = nseg > 0
     totals: dict[str, Tensor] = {}
     kept: list[Samples] = []
+    rounds = 0
     while True:
         if cancel is not None and cancel():
             return None
@@ -130,7 +130,10 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             ids = alive.nonzero(as_tuple=True)[0]
             if ids.numel() == 0:
                 break
-            take = max(1, min(opts.seg_window, opts.round_samples // (ids.numel() * k)))
+            # segments per ray this round: 1, 2, 4, ... (rays still alive late are mostly transparent), capped
+            # by the look-ahead window and the memory budget
+            take = max(1, min(opts.seg_window, 1 << rounds, opts.chunk // (ids.numel() * k)))
+            rounds += 1
             segs = next_segments(o, d, plan, grid, ids, seg_next, k, opts.seg_window, take)
             s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
         acc.stats["candidates"] += len(s)
