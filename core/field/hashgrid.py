@@ -99,8 +99,9 @@ def dense_index(coords: torch.Tensor, res: int) -> torch.Tensor:
 
 
 def to_unit_cube(x: torch.Tensor, bound: float) -> torch.Tensor:
-    """Field coordinates in [-bound, bound]^3 -> [0, 1]^3; points beyond the cube are clamped onto its faces."""
-    return ((x + bound) / (2.0 * bound)).clamp(0.0, 1.0)
+    """Field coordinates in [-bound, bound]^3 -> [0, 1]^3; points beyond the cube are clamped onto its faces
+    and NaN coordinates (e.g. a warp's 0/0) go to 0, so they index the table instead of crashing the gather."""
+    return ((x + bound) / (2.0 * bound)).clamp(0.0, 1.0).nan_to_num(0.0)
 
 
 def encode_reference(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:

@@ -55,7 +55,7 @@ class GridBuffers:
 
 def corner_rows_weights(x: torch.Tensor, spec: GridSpec, buf: GridBuffers) -> tuple[torch.Tensor, torch.Tensor]:
     """Flat-table rows (N, L, 8) int32 and trilinear weights (N, L, 8) of every corner of every level."""
-    u = ((x + spec.bound) / (2.0 * spec.bound)).clamp(0.0, 1.0)
+    u = ((x + spec.bound) / (2.0 * spec.bound)).clamp(0.0, 1.0).nan_to_num(0.0)  # as hashgrid.to_unit_cube
     pos = u[:, None, :] * buf.res_f[None, :, None]  # (N, L, 3)
     cell = torch.minimum(pos.floor().to(torch.int32), buf.res_max[None, :, None])
     frac = pos - cell.float()
