@@ -51,7 +51,7 @@ class _Acc:
     """Per-group accumulators and statistics."""
 
     stats: dict = dc_field(default_factory=lambda: {"rays": 0, "marched": 0, "candidates": 0, "samples": 0,
-                                                     "density_samples": 0})
+                                                     "density_samples": 0, "peak_samples": 0})
     time: dict = dc_field(default_factory=lambda: {"sampling": 0.0, "field": 0.0, "compositing": 0.0})
 
 
@@ -137,6 +137,7 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             segs = next_segments(o, d, plan, grid, ids, seg_next, k, opts.seg_window, take)
             s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
         acc.stats["candidates"] += len(s)
+        acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
         if collect:
             with _Timer(acc, "field", prof, dev), torch.no_grad():
                 sigma = field.density(s.x).reshape(-1) if len(s) else torch.zeros(0, device=dev)
@@ -173,6 +174,7 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         with _Timer(acc, "field", prof, dev):
             sigma, vals = _evaluate(field, s, d, heads)  # with grad; also run on no samples to keep the graph
         acc.stats["samples"] += len(s)
+        acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
         with _Timer(acc, "compositing", prof, dev):
             totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals)
     return totals
