@@ -131,3 +131,18 @@ def test_warped_field_evaluates_the_inner_field_at_warped_points():
     assert f.parameter_groups()["grid"][0] is toy.w
     f.density(x).sum().backward()
     assert toy.w.grad is not None
+
+
+@pytest.mark.slow  # importing the real field can compile its grid (minutes on a busy CPU)
+def test_warped_ngp_field_sees_far_points_inside_its_cube():
+    field_mod = pytest.importorskip("core.field.field")
+    torch.manual_seed(0)
+    inner = field_mod.NGPField(field_mod.FieldConfig(levels=2, log2_table=10, base_res=4, finest_res=8, hidden=16))
+    far = torch.tensor([[10.0, 3.0, -2.0], [100.0, 0.0, 0.0]])
+    assert torch.all(inner.density(far) == 0)  # outside the plain field's cube
+    warped = WarpedField(inner, contract, bound=16.0)
+    assert warped.cfg.bound == 16.0 and inner.cfg.bound == 1.0
+    assert torch.allclose(warped.density(far), inner.density(contract(far)))
+    assert torch.all(warped.density(far) > 0)
+    out = warped(far, torch.nn.functional.normalize(far, dim=-1), outputs=("rgb",))
+    assert out["rgb"].shape == (2, 3) and torch.isfinite(out["rgb"]).all()
