@@ -43,7 +43,8 @@ class TimestepSampler:
         lo, hi = self.t_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ValueError(f"t_range must satisfy 0 <= lo <= hi <= 1, got {self.t_range}")
-        self.min_step, self.max_step = int(n * lo), min(int(n * hi), n - 1)
+        self.max_step = min(int(n * hi), n - 1)
+        self.min_step = min(int(n * lo), self.max_step)  # lo = 1.0 would start past the last timestep
 
     def sample(self) -> int:
         return int(torch.randint(self.min_step, self.max_step + 1, (1,), generator=self.generator).item())
