@@ -185,3 +185,36 @@ def test_onnx_teacher_missing_or_invalid_model(tmp_path, monkeypatch):
     monkeypatch.setenv(ENV_FEATURE_MODEL, str(tmp_path / "env.onnx"))
     with pytest.raises(ModelNotFoundError, match="env.onnx"):
         OnnxFeatureTeacher()
+
+
+# The default teacher measured 0.256 on "similar" at 64 px, 6 views (0.265 at 128 px, 16 views).
+SIMILAR_IOU_BOUND = 0.2
+
+
+def test_similar_preset_patch_query_iou_at_default_threshold(tmp_path):
+    """Four same-red objects told apart only by texture: the patch query on the edited (striped) cube
+    must reach a stated IoU at the default threshold. The issue's target is 0.90; the bound records
+    where the weight-free teacher stands today (about 0.27 at 128 px), so a regression fails."""
+    import json
+    from pathlib import Path
+
+    import cv2
+
+    from core.bench.teacher import mask_iou, place_patch
+    from core.scene.loaders.detect import load_scene
+    from core.synth.generate import make_scene
+
+    root = make_scene("similar", tmp_path / "similar", size=64, views=6, seed=0, test_views=1)
+    scene = load_scene(root, splits=("train",))
+    obj = int(json.loads((root / "gt" / "objects.json").read_text())["edited_object_id"])
+    gts = []
+    for n in scene.train.names:
+        m = cv2.imread(str(root / "gt" / "train" / f"{Path(n).stem}_mask.png"), cv2.IMREAD_UNCHANGED)
+        gts.append((m if m.ndim == 2 else m[..., 0]) == obj)
+    t = DefaultFeatureTeacher()
+    feats = [t(im) for im in scene.train.images]
+    view, (y0, y1, x0, x1) = place_patch(gts)
+    q = l2_normalize(feats[view][y0:y1, x0:x1].reshape(-1, t.dim).mean(0))
+    got = mask_iou([f @ q for f in feats], gts, DEFAULT_THRESHOLD)
+    print(f"similar IoU at {DEFAULT_THRESHOLD}: {got:.3f}")
+    assert got > SIMILAR_IOU_BOUND

@@ -25,7 +25,8 @@ class DefaultTeacherConfig:
     bandwidth: float = 1.75        # kernel width h in descriptor units
     seed: int = 0                  # random frequencies are fixed by this seed
     ref_size: int = 128            # blur scales are in pixels of an image whose short side is this
-    colour_sigmas: tuple = (0.7, 2.0)
+    colour_sigmas: tuple = (0.5,)  # fine: a 2-3 px pole keeps its colour (a 2 px blur erased it)
+    intensity_sigma: float = 1.0   # blur of the log-intensity channel, reference pixels
     dark: float = 0.04             # intensity floor: chroma of near-black pixels fades to grey
     w_chroma: float = 4.0          # per unit of opponent chromaticity (shading-invariant)
     w_intensity: float = 0.35      # per unit of log intensity (shading moves it: low weight)
@@ -81,7 +82,7 @@ class DefaultFeatureTeacher:
         chans = []
         for s in cfg.colour_sigmas:
             chans.append(_blur(chroma, s * unit) * cfg.w_chroma)
-        chans.append(_blur(logi, cfg.colour_sigmas[-1] * unit)[..., None] * cfg.w_intensity)
+        chans.append(_blur(logi, cfg.intensity_sigma * unit)[..., None] * cfg.w_intensity)
         stack = np.concatenate([logi[..., None], chroma], axis=2)
         for s in cfg.texture_scales:
             sig = s * unit
