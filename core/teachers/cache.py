@@ -81,14 +81,16 @@ def teacher_key(teacher: FeatureTeacher) -> str:
 
 
 def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, folder: str | Path,
-                        dims: int = 32, scale: float = 0.5, fit_images: int = 16,
+                        dims: int = 12, scale: float = 1.0, fit_images: int = 16,
                         samples_per_image: int = 8192, seed: int = 0,
                         progress: Callable[[int, int], None] | None = None) -> FeatureStore:
     """Features of every image, computed once and cached under `folder`.
 
     The PCA basis is fitted on pixels subsampled from up to `fit_images` evenly spaced images (one
     teacher pass each), then every image is encoded to `dims` fp16 codes at `scale` x its resolution.
-    A second call with the same images and settings only reads files.
+    A second call with the same images and settings only reads files. Defaults: 12 dims at full
+    resolution (4.6 MB per 504x378 image) keep 2-px structures that half resolution erases (bench
+    teacher, thin preset: IoU 0.61 vs 0.007 at 32 dims / half resolution; demo unchanged at 0.97).
     """
     if not images:
         raise WorkspaceError("no training images to compute teacher features for", folder)
