@@ -22,7 +22,9 @@ from core.device import get_device, synchronize
 from core.render.occupancy import OccupancyGrid
 from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.train import losses
+from core.train.adan import grads_finite
 from core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
+from core.train.health import SpikeDetector
 from core.train.metrics import mse_to_psnr, psnr, ssim
 from core.train.schedule import LRSchedule
 
@@ -53,6 +55,8 @@ class TrainConfig:
     max_samples: int = 1024
     grid_resolution: int = 128
     grid_cascades: int = 1
+    grid_update_every: int = 16  # instant-ngp: 16
+    grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
 
@@ -160,7 +164,8 @@ class Stage1Trainer:
                                          else (None, None))
 
         self.grid = OccupancyGrid(resolution=self.cfg.grid_resolution, cascades=self.cfg.grid_cascades,
-                                  bound=float(getattr(self.field_cfg, "bound", 1.0)), device=self.device)
+                                  bound=float(getattr(self.field_cfg, "bound", 1.0)), device=self.device,
+                                  update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps)
         self.optimizer = self._make_optimizer()
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
@@ -169,6 +174,7 @@ class Stage1Trainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
+        self.spikes = SpikeDetector()
         self.profile = False
         self.last_times: dict = {}
         bg = scene.background
@@ -361,11 +367,13 @@ class Stage1Trainer:
         finite = bool(torch.isfinite(total))
         if finite:
             total.backward()
+            finite = grads_finite(p for g in self.optimizer.param_groups for p in g["params"])
         lap("backward")
         if finite:
             self.optimizer.step()
         else:
-            self.skipped_steps += 1  # DESIGN.md: a non-finite step is skipped and counted, never applied
+            self.skipped_steps += 1  # DESIGN.md: a non-finite loss or gradient is skipped and counted, never applied
+            self.optimizer.zero_grad(set_to_none=True)
         lap("optimizer")
         self.step_count += 1
         with torch.no_grad():
@@ -374,7 +382,9 @@ class Stage1Trainer:
         synchronize(self.device)
         dt = time.perf_counter() - t0
         self.train_seconds += dt
-        info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt)
+        info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt,
+                    skipped=not finite, skipped_steps=self.skipped_steps,
+                    spike=self.spikes.update(float(total.detach())), spikes=self.spikes.spikes)
         stats = out.get("stats") or {}
         for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
