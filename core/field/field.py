@@ -148,3 +148,28 @@ class NGPField(nn.Module):
             feature += list(self.feature_net.parameters())
         mlp = [*self.trunk.parameters(), *self.trunk_out.parameters(), *self.color_net.parameters()]
         return {"grid": list(self.grid.parameters()), "mlp": mlp, "feature": feature}
+
+
+def default_field_config(device: torch.device | str | None = None, image_size: int = 800, **overrides) -> FieldConfig:
+    """Field shape for the device and image size (longest side in pixels).
+
+    CUDA: instant-ngp's 16 levels x 2 features, 2^19 table, finest 2048. CPU: the hash gathers are
+    memory-bound (this 2-core VM moves 4-7 GB/s) and cost linear in the level count, so the CPU default
+    keeps the table in cache (2^16 rows x 2 features x fp32 = 0.5 MB per hashed level) and uses fewer levels;
+    the finest resolution follows the image (4 cells per pixel across the cube, at least 256, at most 2048),
+    since finer levels add no detail a 128-px view can show. Figures: `repaint-nerf bench encoding`.
+    """
+    from core.device import get_device
+
+    dev = torch.device(device) if device is not None else get_device()
+    if dev.type == "cuda":
+        cfg = FieldConfig(levels=16, features_per_level=2, log2_table=19, base_res=16, finest_res=2048)
+    else:
+        finest = int(min(2048, max(256, 4 * image_size)))
+        cfg = FieldConfig(levels=CPU_LEVELS, features_per_level=2, log2_table=CPU_LOG2_TABLE, base_res=16,
+                          finest_res=finest)
+    return FieldConfig(**{**cfg.to_dict(), **overrides})
+
+
+CPU_LEVELS = 12
+CPU_LOG2_TABLE = 16

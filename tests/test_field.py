@@ -1,0 +1,133 @@
+"""NGPField: asked-for outputs only, no feature gradients unless asked, zero density outside, stable activations."""
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from core.errors import UserError
+from core.field.activations import softplus_density, trunc_exp
+from core.field.direction import sh_encode
+from core.field.field import FieldConfig, NGPField, default_field_config
+
+SMALL = dict(levels=4, log2_table=10, base_res=4, finest_res=64, feature_levels=2, feature_log2_table=8,
+             feature_finest_res=16, encoding_impl="indexed")
+
+
+def _field(**kw) -> NGPField:
+    torch.manual_seed(0)
+    return NGPField(FieldConfig(**{**SMALL, **kw}))
+
+
+def _xd(n=500, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, generator=g) * 2 - 1, torch.randn(n, 3, generator=g)
+
+
+@pytest.mark.parametrize("fn", [trunc_exp, softplus_density])
+def test_density_activation_finite_for_extreme_inputs(fn):
+    pre = torch.tensor([-1e4, -100.0, 0.0, 15.0, 100.0, 1e4, 3e38], requires_grad=True)
+    out = fn(pre)
+    out.sum().backward()
+    assert torch.isfinite(out).all() and (out >= 0).all()
+    assert torch.isfinite(pre.grad).all()
+    assert out[2] > 0 and out[-1] >= out[3]  # monotone, not clipped to zero
+
+
+def test_trunc_exp_is_exp_in_range():
+    x = torch.linspace(-10, 10, 41, dtype=torch.float64, requires_grad=True)
+    y = trunc_exp(x)
+    y.sum().backward()
+    torch.testing.assert_close(y, torch.exp(x))
+    torch.testing.assert_close(x.grad, torch.exp(x.detach()))
+
+
+def test_field_density_finite_for_huge_preactivation():
+    f = _field()
+    with torch.no_grad():
+        f.trunk_out.bias[0] = 1e4
+    x, d = _xd(50)
+    x.requires_grad_(True)
+    sigma = f.density(x)
+    sigma.sum().backward()
+    assert torch.isfinite(sigma).all() and torch.isfinite(x.grad).all()
+    assert all(torch.isfinite(p.grad).all() for p in f.parameters() if p.grad is not None)
+
+
+def test_outside_points_have_zero_density_and_inside_positive():
+    f = _field(bound=1.5)
+    outside = torch.tensor([[1.6, 0, 0], [0, -1.51, 0], [0, 0, 9.0], [-3.0, 2.0, 1.0]])
+    inside = torch.tensor([[1.5, 1.5, -1.5], [0, 0, 0], [-1.4, 0.3, 1.2]])
+    assert (f.density(outside) == 0).all()
+    assert (f(outside, torch.ones_like(outside))["sigma"] == 0).all()
+    assert (f.density(inside) > 0).all()
+
+
+def test_density_matches_forward_sigma():
+    f = _field(feature_dim=4)
+    x, d = _xd()
+    torch.testing.assert_close(f.density(x), f(x, d)["sigma"])
+
+
+def test_only_asked_outputs_and_ranges():
+    f = _field(feature_dim=6)
+    x, d = _xd()
+    assert set(f(x, d, ("rgb",))) == {"sigma", "rgb"}
+    assert set(f(x, None, ("sigma",))) == {"sigma"}
+    out = f(x, d, ("rgb", "feature"))
+    assert set(out) == {"sigma", "rgb", "feature"}
+    assert out["sigma"].shape == (500,) and out["rgb"].shape == (500, 3) and out["feature"].shape == (500, 6)
+    assert (out["rgb"] >= 0).all() and (out["rgb"] <= 1).all() and (out["sigma"] >= 0).all()
+    with pytest.raises(UserError):
+        _field()(x, d, ("feature",))  # no feature head
+    with pytest.raises(UserError):
+        f(x, d, ("normals",))
+
+
+@pytest.mark.parametrize("head", ["separate", "trunk"])
+def test_feature_params_untouched_unless_asked(head):
+    f = _field(feature_dim=4, feature_head=head)
+    x, d = _xd()
+    out = f(x, d, ("rgb",))
+    (out["rgb"].sum() + out["sigma"].sum()).backward()
+    groups = f.parameter_groups()
+    assert groups["feature"] and all(p.grad is None for p in groups["feature"])
+    assert all(p.grad is not None for p in groups["grid"] + groups["mlp"])
+    f.zero_grad(set_to_none=True)
+    f(x, d, ("feature",))["feature"].sum().backward()
+    assert all(p.grad is not None for p in groups["feature"])
+    if head == "separate":  # DFF's design: the feature loss never moves the geometry
+        assert all(p.grad is None for p in groups["grid"] + groups["mlp"])
+
+
+def test_parameter_groups_partition_parameters():
+    for kw in ({}, {"feature_dim": 3}, {"feature_dim": 3, "feature_head": "trunk"}):
+        f = _field(**kw)
+        grouped = [p for ps in f.parameter_groups().values() for p in ps]
+        assert len(grouped) == len({id(p) for p in grouped}) == len(list(f.parameters()))
+    assert _field().parameter_groups()["feature"] == []
+
+
+def test_config_round_trips_through_json():
+    cfg = FieldConfig(**SMALL, feature_dim=8)
+    back = FieldConfig.from_dict(json.loads(json.dumps(cfg.to_dict())) | {"from_the_future": 1})
+    assert back == cfg
+
+
+def test_sh_encoding_orthonormal():
+    # Monte-Carlo check that the 16 real SH functions are orthonormal on the sphere
+    d = torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    y = sh_encode(d, 4)
+    gram = (y.T @ y) * (4 * torch.pi / d.shape[0])
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
+    assert sh_encode(d[:5], 2).shape == (5, 4)
+    with pytest.raises(UserError):
+        sh_encode(d[:5], 5)
+
+
+def test_default_config_per_device():
+    cpu, cuda = default_field_config("cpu", 128), default_field_config("cuda", 800)
+    assert (cuda.levels, cuda.log2_table, cuda.finest_res) == (16, 19, 2048)
+    assert cpu.log2_table < cuda.log2_table  # CPU tables stay in cache
+    NGPField(FieldConfig(**{**cpu.to_dict(), "encoding_impl": "indexed"}))  # builds
