@@ -33,6 +33,7 @@ from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.repaint import offline
 from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from core.train.checkpoint import Checkpoint, split_state
+from core.train.health import SpikeDetector
 from core.train.schedule import LRSchedule
 
 GUIDANCES = ("sd", "recolor", "remove", "analytic")
@@ -151,6 +152,7 @@ class RepaintTrainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
+        self.spikes = SpikeDetector()  # on the unmask loss: the guidance loss swings with t by design
         self.done = False
         self.cancelled = False
         self.version = None
@@ -334,6 +336,7 @@ class RepaintTrainer:
             synchronize(self.device)
             dt = time.perf_counter() - t0
             self.train_seconds += dt
+            info.update(spike=self.spikes.update(info.get("unmask", float("nan"))), spikes=self.spikes.spikes)
             info.update(step=self.step_count, skipped=skipped, skipped_steps=self.skipped_steps, seconds=dt,
                         phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]))
             self.history.append(info)

@@ -86,15 +86,10 @@ def make_field(field_cfg=None, device: torch.device | None = None, image_size: i
 
 
 def field_config_from_dict(d: dict):
-    """Rebuild a FieldConfig saved with `dataclasses.asdict` (unknown keys ignored, lists back to tuples)."""
+    """Rebuild the FieldConfig saved with a checkpoint (unknown keys from newer versions ignored)."""
     from core.field.field import FieldConfig
 
-    kw = {}
-    for f in dataclasses.fields(FieldConfig):
-        if f.name in d:
-            v = d[f.name]
-            kw[f.name] = tuple(v) if isinstance(v, list) else v
-    return FieldConfig(**kw)
+    return FieldConfig.from_dict(d)
 
 
 def _flat_images(images: list[np.ndarray]) -> tuple[torch.Tensor, np.ndarray, np.ndarray, np.ndarray]:
