@@ -77,3 +77,21 @@ def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] 
     cpu = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     with atomic_path(path) as tmp:
         save_file(cpu, str(tmp), metadata=metadata)
+
+
+def sweep_stale_temps(folder: str | Path, older_than_s: float = 300.0) -> list[Path]:
+    """Remove temporary files left in `folder` by writes that were killed midway (SIGKILL, power loss), once
+    they are older than `older_than_s` (a live write keeps touching its file). Returns what was removed."""
+    import time
+
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    now = time.time()
+    for p in folder.glob(".*.tmp"):
+        with contextlib.suppress(OSError):
+            if p.is_file() and now - p.stat().st_mtime > older_than_s:
+                p.unlink()
+                removed.append(p)
+    return removed

@@ -106,6 +106,8 @@ class Workspace:
                                  marker, hint="use the repaint-nerf version that wrote it, or train a new workspace")
         for sub in SUBDIRS:
             (root / sub).mkdir(exist_ok=True)
+        for folder in (root, *(root / sub for sub in SUBDIRS)):
+            atomic.sweep_stale_temps(folder)  # debris of saves killed midway; the files they replace are intact
         return cls(root)
 
     @classmethod
