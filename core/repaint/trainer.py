@@ -52,7 +52,8 @@ class RepaintConfig:
     lambda_clip: float = 0.0  # official code: 0.01 with Stable Diffusion; 0 loads no CLIP
     optimizer: str = "paper"  # 'paper': Adan 1e-3 decaying to 1e-4; 'official': 5e-3, 10x on the grid, constant
     lr: float | None = None  # overrides the preset's base rate
-    mask_dilation: int = 0  # pixels added around the mask (the unmask loss leaves them free)
+    mask_dilation: int = 0  # pixels added around the mask (guidance and unmask loss both see the larger mask)
+    unmask_margin: int = 1  # pixels around the mask the unmask loss leaves free (its soft edges may change)
     snapshot_every: int = 25  # steps between preview snapshots (0 = none)
     snapshot_view: int = 0
     seed: int = 0
@@ -205,7 +206,7 @@ class RepaintTrainer:
             self.rays.append((o, d))
             self.images.append(img)
             self.masks.append(m)
-            self.keep.append(1.0 - m)
+            self.keep.append(1.0 - offline.dilate(m, self.cfg.unmask_margin))
         self.size = (int(cams.height[0]), int(cams.width[0]))
 
     def _region(self) -> Tensor:
@@ -229,7 +230,7 @@ class RepaintTrainer:
             # Inpaint (and leave free of the unmask loss) a rim around the object's soft edges too.
             rim = max(1, round(max(self.size) / 64))
             self.masks = [offline.dilate(m, rim) for m in self.masks]
-            self.keep = [1.0 - m for m in self.masks]
+            self.keep = [1.0 - offline.dilate(m, self.cfg.unmask_margin) for m in self.masks]
             return offline.RemoveGuidance(self.images, self.masks, region, self.bound,
                                           clear_weight=self.cfg.remove_clear_weight, seed=self.cfg.seed)
         if kind == "analytic":
