@@ -85,7 +85,7 @@ def scene():
 
 def _run(scene, masks, kind, steps, **kw):
     field = make_field()
-    tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance=kind, steps=steps, lr=0.1,
+    tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance=kind, steps=steps, optimizer="official", lr=0.02,
                         max_samples=256, **kw)
     before = tr.evaluate("train", masks)
     tr.run()
@@ -94,7 +94,7 @@ def _run(scene, masks, kind, steps, **kw):
 
 def test_recolour_edit_changes_the_hue_and_keeps_the_rest(scene):
     scene, masks = scene
-    tr, before, after = _run(scene, masks, "recolor", 40, prompt="make it blue")
+    tr, before, after = _run(scene, masks, "recolor", 30, prompt="make it blue")
     assert tr.kind == "recolor" and tr.skipped_steps == 0
     rgb = torch.cat([tr.render_view(i, grad=False)[0].permute(1, 2, 0)[torch.from_numpy(m)]
                      for i, m in enumerate(masks)])
@@ -105,7 +105,7 @@ def test_recolour_edit_changes_the_hue_and_keeps_the_rest(scene):
 
 def test_remove_edit_clears_the_object(scene):
     scene, masks = scene
-    tr, before, after = _run(scene, masks, "remove", 40, prompt="remove the ball")
+    tr, before, after = _run(scene, masks, "remove", 30, prompt="remove the ball")
     assert tr.kind == "remove" and tr.region is None  # a removal never marks new cells occupied
     red = []
     for i, m in enumerate(masks):
@@ -114,5 +114,6 @@ def test_remove_edit_clears_the_object(scene):
     assert float(torch.stack(red).mean()) < 0.15, "the red ball's pixels should show the slab or background"
     region = tr.guidance.region
     x = offline.region_points(region, 1.0, 2048, torch.Generator().manual_seed(1))
-    assert float(tr.field.density(x).mean()) < 0.2 * float(make_field().density(x).mean())
+    with torch.no_grad():
+        assert float(tr.field.density(x).mean()) < 0.2 * float(make_field().density(x).mean())
     assert after["psnr_unmasked"] > 25.0
