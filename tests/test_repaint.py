@@ -1,0 +1,172 @@
+"""Repaint trainer: an SD step end to end on tiny models, skipped non-finite steps, analytic convergence,
+cancel/pause, versions and undo, the NGPField path, and the `repaint` command's bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from app.cli import main
+from core.repaint.guidance import distillation_loss
+from core.repaint.trainer import RepaintTrainer
+from core.train.checkpoint import Checkpoint
+from core.workspace.workspace import Workspace
+from repaint_scene import VoxelField, make_field, make_grid, make_scene
+from tiny_diffusion import cached
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_scene()
+
+
+def _trainer(scene, guidance, **kw):
+    scene, masks = scene
+    field = make_field()
+    kw.setdefault("max_samples", 256)
+    return RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance=guidance, **kw)
+
+
+def test_sd_step_end_to_end_gradients_reach_only_the_field(scene, tmp_path_factory):
+    sd_path = cached("sd", tmp_path_factory)
+    tr = _trainer(scene, "sd", prompt="a blue ball", sd_path=sd_path, steps=5)
+    sd = tr.guidance.sd
+    before = {k: v.clone() for k, v in tr.field.state_dict().items()}
+    info = tr.step()
+    assert not info["skipped"] and 20 <= info["t"] <= 980 and np.isfinite(info["loss"])
+    assert not torch.equal(before["col"], tr.field.col.detach())  # the field moved
+    assert all(not p.requires_grad and p.grad is None
+               for m in (sd.unet, sd.vae, sd.text_encoder) for p in m.parameters())
+    assert tr.clip is None  # lambda_clip 0: no CLIP loaded
+
+
+class NaNGuidance:
+    """A guidance whose SDS gradient is NaN (distillation_loss flags it skipped)."""
+
+    def loss(self, rgb, mask, view, step):
+        return distillation_loss(rgb, torch.full_like(rgb, float("nan")), t=500)
+
+
+class InfGradGuidance:
+    """A finite loss whose gradient is infinite (caught by the optimiser's check)."""
+
+    def loss(self, rgb, mask, view, step):
+        x = rgb.sum() * 0 + 1.0
+        return {"loss": torch.sqrt((rgb * 0).sum()) + x - 1.0, "skipped": False, "t": 0, "grad_norm": 0.0}
+
+
+@pytest.mark.parametrize("guidance", [NaNGuidance(), InfGradGuidance()])
+def test_non_finite_guidance_is_skipped_not_applied(scene, guidance):
+    tr = _trainer(scene, guidance, steps=3)
+    before = {k: v.clone() for k, v in tr.field.state_dict().items()}
+    info = tr.step()
+    assert info["skipped"] and tr.skipped_steps == 1
+    for k, v in tr.field.state_dict().items():
+        assert torch.equal(v, before[k]), k
+
+
+def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
+    scene, masks = make_scene(tmp_path / "scene", size=16, edited_rgb=(0.12, 0.3, 0.9))
+    from core.repaint.trainer import edited_images
+
+    targets = edited_images(scene)
+    field = make_field()
+    tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="analytic", steps=30,
+                        optimizer="official", lr=0.02, max_samples=256)
+    before = tr.evaluate("train", masks, targets)
+    tr.run()
+    after = tr.evaluate("train", masks, targets)
+    assert after["psnr_masked"] > before["psnr_masked"] + 3.0, (before, after)
+    assert after["psnr_unmasked"] > before["psnr_unmasked"] - 1.0, (before, after)
+
+
+def test_analytic_needs_the_edited_variant(scene):
+    from core.errors import UserError
+
+    with pytest.raises(UserError, match="edited"):
+        _trainer(scene, "analytic", steps=1)
+
+
+def _save_original(ws, field, grid, scene):
+    tr = _trainer((scene[0], scene[1]), "recolor", prompt="blue", steps=1)
+    tr.field.load_state_dict(field.state_dict())
+    return ws.save_version("reconstruction", tr.checkpoint(), kind="stage1")
+
+
+def test_finished_edit_is_a_version_and_undo_restores_the_original(scene, tmp_path):
+    ws = Workspace.create(tmp_path / "ws")
+    original = make_field()
+    first = _save_original(ws, original, None, scene)
+    tr = _trainer(scene, "recolor", prompt="make it blue", steps=4, workspace=ws, optimizer="official")
+    snaps = []
+    tr.on_snapshot, tr.cfg.snapshot_every = snaps.append, 2
+    tr.run()
+    assert tr.done and ws.current_version.id == tr.version.id and ws.current_version.kind == "edit"
+    assert len(snaps) == 2 and snaps[-1]["rgb"].shape == (16, 16, 3)
+    prev = ws.undo()
+    assert prev.id == first.id
+    restored = VoxelField()
+    restored.load_state_dict(Checkpoint.load(ws.version_path(prev)).section("field"))
+    for k, v in original.state_dict().items():
+        assert torch.equal(restored.state_dict()[k], v)
+    edited = Checkpoint.load(ws.version_path(tr.version))
+    assert not torch.equal(edited.section("field")["col"], original.col.detach())
+    assert edited.header["edit"]["guidance"] == "recolor"
+
+
+def test_cancel_restores_and_pause_stops(scene):
+    tr = _trainer(scene, "recolor", prompt="make it blue", steps=50, optimizer="official")
+    original = {k: v.clone() for k, v in tr.field.state_dict().items()}
+    tr.step()
+    tr.pause()
+    assert tr.train_for(5.0)["step"] == 1 and tr.step_count == 1  # paused: no step taken
+    tr.resume()
+    tr.train_for(0.0)
+    assert tr.step_count == 2
+    tr.cancel()
+    assert tr.cancelled and not tr.done
+    for k, v in tr.field.state_dict().items():
+        assert torch.equal(v, original[k])
+    assert tr.run() is None  # a cancelled edit takes no more steps
+
+
+def test_ngp_field_step_and_version_restore(scene, tmp_path):
+    from core.field.field import FieldConfig, NGPField
+    from core.render.occupancy import OccupancyGrid
+    from core.train.stage1 import restore_field
+
+    cfg = FieldConfig(levels=4, log2_table=12, finest_res=64, hidden=16, feature_dim=4, compile=False)
+    torch.manual_seed(0)
+    field = NGPField(cfg)
+    grid = OccupancyGrid(16, bound=1.0, device="cpu")
+    ws = Workspace.create(tmp_path / "ws")
+    sc, masks = scene
+    tr = RepaintTrainer(sc, field, grid, masks=masks, guidance="recolor", prompt="blue", steps=1,
+                        max_samples=64, workspace=ws)
+    feat_before = [p.clone() for p in field.parameter_groups()["feature"]]
+    tr.run()
+    assert tr.done and all(torch.equal(a, b) for a, b in zip(feat_before, field.parameter_groups()["feature"]))
+    f2, g2, header = restore_field(Checkpoint.load(ws.version_path(ws.current_version)), "cpu")
+    for k, v in field.state_dict().items():
+        torch.testing.assert_close(f2.state_dict()[k], v)
+    assert header["kind"] == "edit"
+
+
+def test_cli_bad_input(tmp_path, capsys, monkeypatch):
+    ws = Workspace.create(tmp_path / "ws")
+    ws.save_version("reconstruction", Checkpoint({"field.x": torch.zeros(1)}, {}), kind="stage1")
+    assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "make it blue"]) == 2
+    err = capsys.readouterr().err
+    assert "no selection" in err and "repaint-nerf select" in err
+    for var in ("REPAINT_NERF_SD_PATH", "REPAINT_NERF_MODELS"):
+        monkeypatch.delenv(var, raising=False)
+    assert main(["repaint", str(ws.root), "--guidance", "sd", "--prompt", "a blue rose"]) == 2
+    err = capsys.readouterr().err
+    assert "--sd-path" in err and "REPAINT_NERF_SD_PATH" in err
+    assert main(["repaint", str(ws.root), "--guidance", "sd", "--prompt", "x", "--sd-path",
+                 str(tmp_path / "nope")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "a vase"]) == 2
+    assert "--color" in capsys.readouterr().err
+    assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "blue", "--steps", "0"]) == 2
+    assert main(["repaint", str(tmp_path / "missing"), "--guidance", "remove"]) == 2
