@@ -67,11 +67,7 @@ class TinyField(torch.nn.Module):
         return {"grid": [self.geo], "feature": [self.feat] if self.feat is not None else []}
 
 
-@pytest.fixture
-def field_impl(monkeypatch):
-    """The real field when built; else the stand-in (patched into the trainer's field factory)."""
-    if _field_available():
-        return "real"
+def _use_standin(monkeypatch) -> str:
     import core.train.stage1 as stage1
 
     def make(cfg=None, device=None, image_size=None):
@@ -81,6 +77,18 @@ def field_impl(monkeypatch):
     monkeypatch.setattr(stage1, "make_field", make)
     monkeypatch.setattr(stage1, "field_config_from_dict", lambda d: TinyFieldConfig(**d))
     return "stand-in"
+
+
+@pytest.fixture
+def field_impl(monkeypatch):
+    """The real field when built; else the stand-in (patched into the trainer's field factory)."""
+    return "real" if _field_available() else _use_standin(monkeypatch)
+
+
+@pytest.fixture
+def standin_field(monkeypatch):
+    """The cheap stand-in field, for tests of the trainer's own plumbing (losses, sampling)."""
+    return _use_standin(monkeypatch)
 
 
 @pytest.fixture(scope="module")
@@ -157,7 +165,7 @@ def test_training_raises_test_psnr(tiny_scene, field_impl):
     from core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
-    tr = Stage1Trainer(scene, None, _cfg())
+    tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=1024))
     before = tr.evaluate()["psnr"]
     tr.plan(steps=40)  # a few seconds on an idle machine (steps, not seconds: the test must not depend on load)
     info = tr.train(steps=40)
@@ -168,7 +176,7 @@ def test_training_raises_test_psnr(tiny_scene, field_impl):
     assert tr.done
 
 
-def test_seeded_and_reproducible(tiny_scene, field_impl):
+def test_seeded_and_reproducible(tiny_scene, standin_field):
     from core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
@@ -179,7 +187,7 @@ def test_seeded_and_reproducible(tiny_scene, field_impl):
     assert runs[0] == runs[1]
 
 
-def test_random_background_targets(tiny_scene, field_impl):
+def test_random_background_targets(tiny_scene, standin_field):
     from core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
@@ -224,7 +232,7 @@ def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch
     assert tr.features is None and tr.depth is None
 
 
-def test_feature_and_depth_losses_act_when_on(tiny_scene, field_impl, monkeypatch):
+def test_feature_and_depth_losses_act_when_on(tiny_scene, standin_field, monkeypatch):
     import core.train.stage1 as stage1
 
     _, scene = tiny_scene
@@ -251,7 +259,7 @@ def test_feature_and_depth_losses_act_when_on(tiny_scene, field_impl, monkeypatc
     assert float(torch.nanmean(tr.depth)) == pytest.approx(4.0 * scene.norm.scale, rel=1e-5)
 
 
-def test_sparse_depth_priors_get_extra_rays(tiny_scene, field_impl):
+def test_sparse_depth_priors_get_extra_rays(tiny_scene, standin_field):
     import core.train.stage1 as stage1
 
     _, scene = tiny_scene
