@@ -6,6 +6,8 @@ become `scene.points`. Registered images sorted by name; every 8th is test.
 """
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -39,12 +41,47 @@ def find_model(root: Path) -> Path | None:
     return None
 
 
+PROBE_TIMEOUT_S = 20.0  # plus 1 s per 10 MB of .bin files
+_PROBE = """
+import sys
+try:
+    import resource
+    resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))
+except (ImportError, ValueError, OSError):
+    pass
+import pycolmap
+pycolmap.Reconstruction().read(sys.argv[1])
+"""
+
+
+def probe_binary_model(model: Path) -> None:
+    """Read a binary model once in a child process (time- and memory-limited) before reading it here: on some
+    corrupt .bin files (a count or track length turned huge) pycolmap loops forever or aborts the process."""
+    size = sum(f.stat().st_size for f in model.glob("*.bin"))
+    if size == 0:
+        return
+    timeout = PROBE_TIMEOUT_S + size / 10e6
+    limit = 4 * 1024 ** 3 + 50 * size
+    hint = "re-export the model (colmap model_converter) or run structure-from-motion again"
+    try:
+        r = subprocess.run([sys.executable, "-c", _PROBE, str(model), str(limit)], capture_output=True,
+                           timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise SceneError(f"reading the COLMAP model did not finish in {timeout:.0f} s: a .bin file is corrupt",
+                         model, hint=hint) from None
+    if r.returncode != 0:
+        lines = [ln for ln in r.stderr.decode(errors="replace").splitlines() if ln.strip()]
+        why = lines[-1].strip()[:200] if lines else f"exit status {r.returncode}"
+        raise SceneError(f"cannot read the COLMAP model: a .bin file is corrupt ({why})", model, hint=hint)
+
+
 def read_model(model: Path) -> pycolmap.Reconstruction:
     """Read a model folder with pycolmap; a partial or corrupt model is a `SceneError`."""
     for stem in ("cameras", "images", "points3D"):
         if not ((model / f"{stem}.bin").is_file() or (model / f"{stem}.txt").is_file()):
             raise SceneError(f"the COLMAP model is incomplete: {stem}.bin / {stem}.txt is missing", model,
                              hint="re-export the model (colmap model_converter) or run structure-from-motion again")
+    probe_binary_model(model)
     try:
         rec = pycolmap.Reconstruction()
         rec.read(str(model))
@@ -93,6 +130,9 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
     paths, poses, cams = [], [], []
     for im in images:
         p = img_dir / im.name
+        if Path(im.name).is_absolute() or not p.resolve().is_relative_to(img_dir.resolve()):
+            raise SceneError(f"image name '{im.name}' points outside the image folder", model,
+                             hint="COLMAP image names are paths relative to the images/ folder")
         if not p.is_file():
             raise SceneError(f"image '{im.name}' of the COLMAP model not found in {img_dir}", p,
                              hint="put the images the model was built from in images/")

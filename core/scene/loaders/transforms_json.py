@@ -67,7 +67,10 @@ def frame_pose(frame: dict, path: Path, i: int) -> np.ndarray:
 def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
     """The image file a frame names, relative to the JSON's folder, with or without an extension."""
     rel = str(file_path).replace("\\", "/")
-    p = (root / rel).resolve() if not Path(rel).is_absolute() else Path(rel)
+    p = (root / rel).resolve()
+    if Path(rel).is_absolute() or not p.is_relative_to(root.resolve()):
+        raise SceneError(f"frame {i}: image '{file_path}' points outside the dataset folder", path,
+                         hint="file_path must be relative to the folder of the JSON file and stay inside it")
     if p.is_file():
         return p
     for ext in IMAGE_EXTS + tuple(e.upper() for e in IMAGE_EXTS):
