@@ -275,7 +275,8 @@ def test_bf16_autocast_render_and_grid_on_cpu():
             return self.forward(x, None, ())["sigma"]
 
     f = Tiny()
-    o = torch.tensor([[0.0, 0.0, -3.0]]).repeat(32, 1) + torch.linspace(-0.5, 0.5, 32)[:, None] * torch.tensor([1.0, 0, 0])
+    o = torch.tensor([[0.0, 0.0, -3.0]]).repeat(32, 1)
+    o[:, 0] = torch.linspace(-0.5, 0.5, 32)
     d = torch.tensor([[0.0, 0.0, 1.0]]).repeat(32, 1)
     ref = render_rays(f, None, o, d, RenderOptions(max_samples=128))
     with torch.autocast("cpu", dtype=torch.bfloat16):

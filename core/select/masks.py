@@ -188,13 +188,17 @@ def load_masks(folder: str | Path) -> list[np.ndarray]:
 
     try:
         views = json.loads(index.read_text(encoding="utf-8"))["views"]
-    except (OSError, ValueError, KeyError) as exc:
+        files = [str(v["file"]) for v in views]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         raise WorkspaceError(f"the mask index is unreadable ({exc})", index, hint="run repaint-nerf select again")
     out = []
-    for v in views:
-        img = cv2.imread(str(folder / v["file"]), cv2.IMREAD_GRAYSCALE)
+    for name in files:
+        if Path(name).is_absolute() or not (folder / name).resolve().is_relative_to(folder.resolve()):
+            raise WorkspaceError(f"the mask index names a file outside the masks folder ({name!r})", index,
+                                 hint="run repaint-nerf select again")
+        img = cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise WorkspaceError("a mask file is missing or corrupt", folder / v["file"],
+            raise WorkspaceError("a mask file is missing or corrupt", folder / name,
                                  hint="run repaint-nerf select again")
         out.append(img > 127)
     return out

@@ -13,6 +13,7 @@ Layout (format version `FORMAT_VERSION`)::
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -52,6 +53,23 @@ def _read_json(path: Path) -> Any:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise WorkspaceError(f"cannot read this file ({exc.__class__.__name__}: {exc})", path,
                              hint="the file is corrupt; restore it or delete the workspace and train again")
+
+
+def _valid_index(data: Any) -> bool:
+    """Whether a parsed versions/index.json has the shape the methods below rely on (found by fuzzing)."""
+    if not isinstance(data, dict) or not {"versions", "history", "current"} <= set(data):
+        return False
+    versions, history, current = data["versions"], data["history"], data["current"]
+    if not isinstance(versions, dict) or not isinstance(history, list) or type(current) is not int:
+        return False
+    names = {"id", "name", "file", "created", "parent", "kind"}
+    for vid, info in versions.items():
+        if not (isinstance(info, dict) and {"id", "name", "file", "created", "parent"} <= set(info) <= names
+                and info["id"] == vid and isinstance(info["file"], str)
+                and isinstance(info.get("kind", "stage1"), str)
+                and re.fullmatch(r"v\d+", vid)):
+            return False
+    return all(isinstance(v, str) and v in versions for v in history) and -1 <= current < len(history)
 
 
 class Workspace:
@@ -166,7 +184,7 @@ class Workspace:
         if not path.exists():
             return {"versions": {}, "history": [], "current": -1}
         data = _read_json(path)
-        if not isinstance(data, dict) or not {"versions", "history", "current"} <= set(data):
+        if not _valid_index(data):
             raise WorkspaceError("the version index is malformed", path,
                                  hint="restore versions/index.json or delete the versions folder")
         return data
@@ -197,7 +215,12 @@ class Workspace:
         return None
 
     def version_path(self, info: VersionInfo) -> Path:
-        return self.root / info.file
+        """The version's file; an index entry pointing outside the workspace is a WorkspaceError."""
+        p = (self.root / str(info.file)).resolve()
+        if Path(str(info.file)).is_absolute() or not p.is_relative_to(self.root.resolve()):
+            raise WorkspaceError(f"version {info.id} points outside the workspace ({info.file!r})",
+                                 self._index_path(), hint="restore versions/index.json or delete the versions folder")
+        return p
 
     def save_version(self, name: str, state: SavableState, kind: str = "edit") -> VersionInfo:
         """Write `state` as a new version after the current one and make it current.

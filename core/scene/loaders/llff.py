@@ -55,7 +55,7 @@ def load_llff(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         arr = np.array(np.load(path, allow_pickle=False, mmap_mode="r"))
     except FileNotFoundError as exc:
         raise SceneError("file not found", path) from exc
-    except (ValueError, OSError, MemoryError) as exc:
+    except Exception as exc:  # noqa: BLE001 - numpy raises ValueError, EOFError, SyntaxError... on garbage headers
         raise SceneError(f"not a readable .npy array ({exc})", path) from exc
     if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0 or arr.dtype.kind not in "fiu":
         raise SceneError(f"expected a numeric array of shape (N, 17) (3x5 pose + near/far per image), "
