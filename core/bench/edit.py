@@ -25,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=40, help="generated training views")
     p.add_argument("--test-views", type=int, default=8)
     p.add_argument("--stage1-steps", type=int, default=1500)
+    p.add_argument("--rays", type=int, default=None, help="stage-1 rays per batch (default: the trainer's)")
     p.add_argument("--steps", type=int, default=300, help="edit steps of the main run")
     p.add_argument("--ablation-steps", type=int, default=None, help="edit steps per ablation run (default --steps)")
     p.add_argument("--evals", type=int, default=6, help="evaluations along the main run")
@@ -142,6 +143,8 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         store = build_feature_store(scene.train.images, DefaultFeatureTeacher(), Path(tmp) / "teachers")
         cfg = TrainConfig(seed=args.seed)
+        if args.rays:
+            cfg.rays_per_batch = args.rays
         s1 = Stage1Trainer(scene, None, cfg, device=device, feature_targets=store.codes)
         s1.plan(args.stage1_steps)
         s1.train(steps=args.stage1_steps)
