@@ -347,3 +347,23 @@ def test_no_unpickling_loaders():
         if re.search(r"^\s*import pickle|pickle\.loads?\(", text, re.M):
             bad.append(f"{p}: pickle")
     assert not bad, bad
+
+
+def test_cli_on_bad_input_leaves_a_clean_workspace(tmp_path, capsys):
+    """`train` on a corrupt dataset: exit 2 with the message (no traceback); the workspace it named opens cleanly,
+    holds no checkpoint, no version and no temporary files."""
+    from app.cli import main
+    from core.workspace.workspace import Workspace
+
+    root = tmp_path / "blender"
+    write_blender(root, counts={"train": 3}, w=12, h=8)
+    path = root / "transforms_train.json"
+    good = path.read_text()
+    path.write_text(good[: len(good) // 2])
+    ws_root = tmp_path / "ws"
+    assert main(["train", str(root), "--workspace", str(ws_root), "--steps", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "transforms_train.json" in err and "Traceback" not in err
+    ws = Workspace.open(ws_root)
+    assert ws.current_version is None and not list(ws.checkpoints_dir.iterdir())
+    assert not list(ws_root.rglob(".*.tmp"))
