@@ -39,7 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=8, help="test views of generated presets")
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
     p.add_argument("--no-depth-run", action="store_true", help="skip the run without depth supervision")
-    p.add_argument("--feature-head", default=None, help="field feature head to use (a FieldConfig choice)")
+    p.add_argument("--feature-head", default=None, choices=("separate", "trunk"),
+                   help="feature head design (default: the field's FieldConfig default)")
     p.add_argument("--threshold", type=float, default=None, help="threshold (default: DEFAULT_THRESHOLD)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", default="bench_mask.json", help="output JSON path")
@@ -274,12 +275,11 @@ def _train_run(scene, store, depth, args, device, evals, patch, gts, threshold) 
     if depth is None:
         cfg.lambda_depth = 0.0
     field_cfg = None
-    if args.feature_head:
-        from core.field import field as fieldmod
+    if args.feature_head:  # 'separate' (DFF's own grid + MLP) or 'trunk' (a head on the density trunk)
+        from core.field.field import default_field_config
 
-        maker = getattr(fieldmod, "default_field_config", None)
-        base = maker() if maker else fieldmod.FieldConfig()
-        field_cfg = dataclasses.replace(base, feature_head=args.feature_head)
+        size = max(max(im.shape[:2]) for im in scene.train.images)
+        field_cfg = default_field_config(device, size, feature_head=args.feature_head)
     trainer = Stage1Trainer(scene, None, cfg, field_cfg=field_cfg, device=device,
                             feature_targets=store.codes, depth_priors=depth)
     trainer.plan(args.steps)
