@@ -81,7 +81,7 @@ class EditorApp:
 
     def start_repaint(self) -> None:
         s = self.state
-        opts = {"lambda_unmask": float(s.lambda_unmask), "steps": int(s.steps)}
+        opts = {"lambda_unmask": float(s.lambda_unmask), "steps": int(s.steps), "threshold": float(s.threshold)}
         if s.backend == "sd":
             opts.update(sd_path=s.sd_path or None, clip_path=s.clip_path or None)
         self.call("repaint", s.prompt, s.bg_prompt, s.backend, opts)
@@ -116,6 +116,7 @@ class EditorApp:
             s.history.add(msg.info)
             if msg.info.get("phase") == "repaint" and msg.info.get("done"):
                 s.repaint_running = False
+                self.worker.refresh()  # show the finished edit sharp
         elif isinstance(msg, Reply):
             self.events.append((time.perf_counter(), f"reply:{msg.name}", msg))
             if msg.error is not None:
@@ -130,6 +131,8 @@ class EditorApp:
                 s.scene_info = dict(msg.value)
                 self.camera = CameraControl.framing(s.scene_info["cameras"])
                 self.worker.projector.reset()
+                for note in s.scene_info.get("notes", []):
+                    s.say(note)
             elif msg.name == "select":
                 s.selection_busy = False
                 s.has_selection = True
@@ -279,7 +282,9 @@ class EditorApp:
         self._draw_viewport(w - panel_w, h)
         self._draw_panels(w - panel_w, panel_w, h)
         if self.camera is not None and self.state.scene_info.get("loaded"):
-            outputs = ("rgb", "depth") + (("feature",) if self.state.view_mode == "feature" else ())
+            # Features ride along while the patch tool is on, so a patch selects from the frame on screen.
+            want_feature = self.state.view_mode == "feature" or self.state.tool == "select"
+            outputs = ("rgb", "depth") + (("feature",) if want_feature else ())
             key = (self.camera.state(), self.view_size, outputs)
             if key != self.requested_key:
                 self.requested_key = key

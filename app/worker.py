@@ -140,7 +140,9 @@ class Worker:
 
     # ---- worker side
     def _stale(self, serial: int) -> Callable[[], bool]:
-        return lambda: self._stop.is_set() or self._latest is None or self._latest.serial != serial
+        # A queued command (a patch to select, an undo) also interrupts a render: it is served first.
+        return lambda: (self._stop.is_set() or self._latest is None or self._latest.serial != serial
+                        or not self.commands.empty())
 
     def _run_commands(self) -> None:
         while True:

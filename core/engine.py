@@ -1,8 +1,10 @@
-"""The engine facade: one object that owns a loaded scene, workspace, field, occupancy grid and trainer.
+"""The engine facade: one object that owns a loaded scene, workspace, field, occupancy grid and trainers.
 
-The editor's worker thread and scripts drive everything through it. It composes the public APIs of the
-other `core` modules and holds no algorithm of its own. A backend that is not built or not installed
-raises `FeatureUnavailable` (a `UserError`), which the editor shows as "not available yet".
+The editor's worker thread and scripts drive everything through it: load (dataset, photo folder via SfM,
+or a saved workspace), stage-1 training with teacher features and depth priors (paper Eq. s1), render,
+select (patch queries, similarity, masks for every view), repaint (paper Eq. s2) with pause/cancel,
+undo/redo through workspace versions, save and export. It composes the public APIs of the other `core`
+modules and holds no algorithm of its own. A backend that is not installed raises `FeatureUnavailable`.
 """
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import numpy as np
 import torch
 
 from core.device import get_device
-from core.errors import UserError
+from core.errors import UserError, WorkspaceError
 
 # Feature -> the module that provides it (checked by import, lazily: `core` stays fast to import).
 BACKENDS = {
@@ -24,14 +26,30 @@ BACKENDS = {
     "field": "core.field.field",
     "render": "core.render.renderer",
     "train": "core.train.stage1",
-    "select": "core.selection",
+    "select": "core.select",
     "repaint": "core.repaint.trainer",
     "workspace": "core.workspace.workspace",
 }
+WORKSPACE_MARKER = "workspace.json"
+DEPTH_CACHE = "depth_priors.safetensors"
+GUIDANCES = ("offline", "recolor", "remove", "analytic", "sd")
+# The viewport never renders finer than this multiple of the training images' long side (sharper than
+# the data adds nothing and costs seconds per frame on a CPU).
+MAX_RENDER_OVERSAMPLE = 2.0
+
+
+def editor_train_config(device: torch.device):
+    """Stage-1 settings for interactive training: on a CPU, smaller batches and occupancy grid, so one step
+    (and one grid sweep) takes about a second and the viewport stays live; on CUDA the paper's defaults."""
+    from core.train.stage1 import TrainConfig
+
+    if device.type == "cuda":
+        return TrainConfig()
+    return TrainConfig(rays_per_batch=1024, grid_resolution=64, max_samples=256)
 
 
 class FeatureUnavailable(UserError):
-    """A feature whose backend module is not part of this build yet (or failed to import)."""
+    """A feature whose backend module is not part of this build (or failed to import)."""
 
 
 def _backend(feature: str):
@@ -46,20 +64,53 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy()
 
 
+def is_workspace(path: str | Path) -> bool:
+    """Whether `path` is a repaint-nerf workspace folder (it holds workspace.json)."""
+    return (Path(path) / WORKSPACE_MARKER).is_file()
+
+
+def _checkpoint_header(path: Path) -> dict | None:
+    """The JSON header of a checkpoint or version file without reading its tensors (None if unreadable)."""
+    import json
+
+    from safetensors import safe_open
+
+    from core.train.checkpoint import HEADER_KEY
+
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            return json.loads((f.metadata() or {})[HEADER_KEY])
+    except Exception:
+        try:
+            from core.train.checkpoint import Checkpoint
+
+            return Checkpoint.load(path).header
+        except Exception:
+            return None
+
+
 class Engine:
     """Everything the editor can do, headless. Not thread-safe: one thread (the worker) owns it."""
 
-    def __init__(self, device: str | None = None):
+    def __init__(self, device: str | None = None, train_cfg: Any = None, features: bool = True,
+                 depth: bool = True):
         self.device = get_device(device)
+        self.train_cfg = train_cfg  # core.train.stage1.TrainConfig for new reconstructions (None: default)
+        self.use_features, self.use_depth = features, depth
         self.scene = None
         self.workspace = None
         self.field = None
         self.grid = None
         self.trainer = None
-        self.selection = None  # core.selection state (queries added / subtracted)
-        self.edit = None  # the running repaint job, if any
+        self.selection = None  # core.select.Selection (queries added / subtracted)
+        self.masks: list[np.ndarray] | None = None  # per training view, what the repaint uses
+        self.edit = None  # the running core.repaint.trainer.RepaintTrainer, if any
         self.paused = False
+        self.stage1_frozen = False  # after an edit, stage 1 would pull the field back to the photos
         self.last_info: dict = {}
+        self.notes: list[str] = []
+        self._feature_cache: tuple | None = None  # (camera key, (H, W, F) tensor) of the newest render
+        self._saved_step = -1  # stage-1 step of the newest saved version
 
     # ---- what exists
     @staticmethod
@@ -76,51 +127,149 @@ class Engine:
 
     # ---- scene
     def load(self, path: str | Path | None = None, workspace: str | Path | None = None) -> dict:
-        """Load a dataset, photo folder or workspace (None: the built-in demo scene); build field and trainer."""
+        """Load a dataset, photo folder or saved workspace (None: the built-in demo scene) with its field.
+
+        A workspace opens at its current version. Otherwise the workspace defaults to a folder next to the
+        data (the dataset folder itself is never written to) and resumes its checkpoint when there is one.
+        """
         if path is None:
             path = _backend("demo").demo_scene_path()
         path = Path(path)
         if not path.exists():
             raise UserError("no such dataset, photo folder or workspace", path,
                             hint="check the path, or open the demo scene")
-        scene = _backend("load").load_scene(path, workspace=workspace)  # a photo folder caches its SfM there
+        loader, ws_mod, stage1 = _backend("load"), _backend("workspace"), _backend("train")
         _backend("field"), _backend("render")  # a clear "not available" before any work
-        ws_mod = _backend("workspace")
-        # Default workspace: next to the data, so the dataset folder itself is never written to.
-        ws_root = Path(workspace) if workspace else path.parent / f"{path.name}.repaint-nerf"
-        ws = ws_mod.Workspace.open_or_create(ws_root)
-        ws.update_settings(scene=str(path.resolve()))
-        trainer = _backend("train").Stage1Trainer(scene, ws, device=self.device)
-        trainer.resume()
+        if is_workspace(path):
+            ws = ws_mod.Workspace.open(path)
+            scene_root = ws.settings.get("scene")
+            if not scene_root:
+                raise WorkspaceError("this workspace does not say which scene it belongs to (settings.json)", path,
+                                     hint="open the scene's dataset folder instead")
+            scene_path = Path(scene_root)
+            if not scene_path.exists():
+                raise WorkspaceError(f"the workspace's scene {scene_path} is missing", path,
+                                     hint="move the dataset back, or set 'scene' in settings.json")
+        else:
+            scene_path = path
+            ws_root = Path(workspace) if workspace else path.parent / f"{path.name}.repaint-nerf"
+            ws = ws_mod.Workspace.open_or_create(ws_root)
+            old = ws.settings.get("scene")
+            key = str(path.resolve())
+            if old and old != key and ws.current_version is not None:
+                raise WorkspaceError(f"this workspace holds another scene ({old})", ws.root,
+                                     hint="pass another --workspace folder")
+            ws.update_settings(scene=key)
+        scene = loader.load_scene(scene_path, float(ws.settings.get("downscale", 1.0)), workspace=ws.root)
+
+        ckpt = ws.checkpoints_dir / stage1.CHECKPOINT_NAME
+        version = ws.current_version
+        header = _checkpoint_header(ckpt) if ckpt.exists() else None
+        if header is None and version is not None:
+            header = _checkpoint_header(ws.version_path(version))
+        field_cfg = stage1.field_config_from_dict(header["field_config"]) if header else None
+        train_cfg = self.train_cfg or editor_train_config(self.device)
+        if header and header.get("train_config"):
+            train_cfg = stage1.TrainConfig.from_dict(header["train_config"])
+        want_features = self.use_features and (field_cfg is None or getattr(field_cfg, "feature_dim", 0) > 0)
+        self.notes = []
+        features = self._feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or 12) \
+            if want_features else None
+        depth = self._depth_priors(scene, ws) if self.use_depth else None
+        trainer = stage1.Stage1Trainer(scene, ws, train_cfg, field_cfg, device=self.device,
+                                       feature_targets=features, depth_priors=depth)
+        if ckpt.exists():
+            trainer.resume()
+        if version is not None and (version.kind == "edit" or not ckpt.exists()):
+            trainer.load_version(ws.version_path(version))
         self.scene, self.workspace, self.trainer = scene, ws, trainer
         self.field, self.grid = trainer.field, trainer.grid
-        self.selection = None
-        self.edit = None
+        self.selection, self.masks, self.edit, self._feature_cache = None, None, None, None
+        self.paused = False
+        self.stage1_frozen = any(v.kind == "edit" for v in ws.versions)
+        self._saved_step = trainer.step_count if version is not None else -1
         return self.info()
 
+    def _feature_targets(self, scene, ws, dims: int):
+        """Default-teacher features of the training images, computed once and cached in the workspace."""
+        from core.teachers.cache import build_feature_store
+        from core.teachers.feature_default import DefaultFeatureTeacher
+
+        teacher = DefaultFeatureTeacher()
+        store = build_feature_store(scene.train.images, teacher, ws.teachers_dir, dims=dims)
+        ws.update_settings(teacher=getattr(teacher, "name", "default"))
+        return store.codes
+
+    def _depth_priors(self, scene, ws):
+        """Sparse depth priors (SfM points, else triangulated from the known poses), cached in the workspace."""
+        from core.teachers.depth import DepthPriors
+        from core.teachers.depth_sparse import depth_for_scene
+
+        path = ws.teachers_dir / DEPTH_CACHE
+        if path.exists():
+            try:
+                priors = DepthPriors.load(path)
+                if len(priors) == len(scene.train):
+                    return priors
+            except UserError:
+                pass
+        try:
+            priors = depth_for_scene(scene)
+        except (UserError, ValueError, RuntimeError) as exc:  # too few matches: train without depth
+            self.notes.append(f"no depth priors ({str(exc).splitlines()[0]})")
+            return None
+        priors.save(path)
+        return priors
+
     def info(self) -> dict:
-        """Facts the panels show: scene name, views, field-space training cameras."""
+        """Facts the panels show: scene name, views, field-space training cameras, what can be done."""
         if self.scene is None:
             return {"loaded": False}
-        return {"loaded": True, "name": Path(self.scene.root).name, "format": self.scene.format,
+        root = Path(self.scene.root)
+        ver = self.workspace.current_version if self.workspace is not None else None
+        return {"loaded": True, "name": root.name, "format": self.scene.format,
                 "views": len(self.scene.train), "cameras": self.scene.field_cameras("train"),
-                "workspace": str(self.workspace.root) if self.workspace is not None else None}
+                "workspace": str(self.workspace.root) if self.workspace is not None else None,
+                "settings": dict(self.workspace.settings) if self.workspace is not None else {},
+                "feature_head": self.has_feature_head(),
+                "has_edited": (root / "edited" / "transforms_train.json").is_file(),
+                "version": None if ver is None else {"id": ver.id, "name": ver.name, "kind": ver.kind},
+                "step": int(self.trainer.step_count), "notes": list(self.notes)}
 
     def _need_scene(self) -> None:
         if self.scene is None:
             raise UserError("no scene is loaded", hint="open a dataset, a photo folder or the demo scene first")
 
+    def has_feature_head(self) -> bool:
+        return self.field is not None and int(getattr(getattr(self.field, "cfg", None), "feature_dim", 0) or 0) > 0
+
     # ---- training
     def can_train(self) -> bool:
-        return self.trainer is not None and not self.paused and not getattr(self.trainer, "done", False)
+        """Whether `train_for` has work: a running edit, or stage 1 (until an edit froze it)."""
+        if self.trainer is None or self.paused:
+            return False
+        if self.edit is not None:
+            return not self.edit.done
+        return not self.stage1_frozen and not getattr(self.trainer, "done", False)
 
     def train_for(self, seconds: float) -> dict | None:
         """Advance the active job (the repaint edit if one runs, else stage 1) for about `seconds`."""
         if not self.can_train():
             return None
-        job = self.edit if self.edit is not None else self.trainer
-        info = dict(job.train_for(seconds))
-        info["phase"] = "repaint" if job is self.edit else "reconstruct"
+        if self.edit is not None:
+            info = dict(self.edit.train_for(seconds))
+            info["phase"] = "repaint"
+            info["steps"] = int(self.edit.cfg.steps)
+            if self.edit.done:
+                ver = self.edit.version
+                self.edit = None
+                if ver is not None:  # the stage-1 optimiser's moments belong to the old field
+                    self.trainer.load_version(self.workspace.version_path(ver))
+                    info["version"] = ver.id
+                self._feature_cache = None
+        else:
+            info = dict(self.trainer.train_for(seconds))
+            info["phase"] = "reconstruct"
         self.last_info = info
         return info
 
@@ -131,41 +280,76 @@ class Engine:
         self.paused = False
 
     # ---- rendering
+    def _max_scale(self, cameras) -> float:
+        w0, h0 = self.scene.train.images[0].shape[1], self.scene.train.images[0].shape[0]
+        side = float(max(int(cameras.width[0]), int(cameras.height[0])))
+        return max(MAX_RENDER_OVERSAMPLE * max(w0, h0) / side, 1e-3)
+
     def render(self, cameras, scale: float = 1.0, outputs: tuple = ("rgb", "depth"),
-               cancel: Callable[[], bool] | None = None) -> dict | None:
-        """Render camera 0 of `cameras` (field space) at `scale`: numpy 'rgb' (H,W,3), 'depth', 'feature', 'similarity'."""
+               cancel: Callable[[], bool] | None = None, full: bool = False) -> dict | None:
+        """Render camera 0 of `cameras` (field space) at `scale`: numpy 'rgb' (H,W,3), 'depth', 'feature',
+        'similarity' (when something is selected). The viewport is capped at twice the training resolution
+        unless `full`; returns None when `cancel()` turned true."""
         self._need_scene()
         render = _backend("render")
-        want = tuple(outputs)
-        if self.selection is not None and "feature" not in want:
+        want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
+        if self.selection is not None and "feature" not in want and self.has_feature_head():
             want = want + ("feature",)
-        opts = render.RenderOptions(outputs=want, background=self.trainer.eval_background())
-        with torch.no_grad():
-            out = render.render_camera(self.field, self.grid, cameras.to(self.device), 0, opts, scale=scale,
-                                       cancel=cancel)
+        if not full:
+            scale = min(scale, self._max_scale(cameras))
+        opts = render.RenderOptions(outputs=want, background=self.trainer.eval_background(),
+                                    max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+        was_training = self.field.training
+        self.field.eval()
+        try:
+            with torch.no_grad():
+                out = render.render_camera(self.field, self.grid, cameras.to(self.device), 0, opts, scale=scale,
+                                           cancel=cancel)
+        finally:
+            self.field.train(was_training)
         if out is None:
             return None
+        if "feature" in out:
+            self._feature_cache = (self._camera_key(cameras), out["feature"].float().cpu())
         result = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
         if self.selection is not None and "feature" in out:
-            result["similarity"] = _np(self.selection.similarity(out["feature"]))
+            result["similarity"] = _np(self.selection.similarity(out["feature"].float()))
         return result
 
-    # ---- selection
-    def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> np.ndarray:
-        """Add ('new', 'add') or subtract ('sub') the mean feature of `patch` (x0, y0, x1, y1 in [0, 1]) of this view.
+    @staticmethod
+    def _camera_key(cameras) -> tuple:
+        c = cameras.to("cpu")
+        return (tuple(np.round(c.c2w[0].double().numpy().reshape(-1), 6)), float(c.fx[0]),
+                int(c.width[0]), int(c.height[0]))
 
-        Returns the similarity map of the view at full resolution.
-        """
+    # ---- selection
+    def _features_for(self, cameras) -> torch.Tensor:
+        if self._feature_cache is not None and self._feature_cache[0] == self._camera_key(cameras):
+            return self._feature_cache[1]
+        side = max(int(cameras.width[0]), int(cameras.height[0]))
+        self.render(cameras, scale=min(1.0, 256.0 / side), outputs=("feature",))
+        return self._feature_cache[1]
+
+    def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> np.ndarray:
+        """Add ('new', 'add') or subtract ('sub') the mean feature of `patch` (x0, y0, x1, y1 in [0, 1]) of this
+        view, using the newest rendered feature map of this camera. Returns the view's similarity map."""
         self._need_scene()
         sel = _backend("select")
-        feat = self.render(cameras, outputs=("feature",))["feature"]
+        if not self.has_feature_head():
+            raise UserError("this field was trained without a feature head, so it cannot select",
+                            self.workspace.root if self.workspace is not None else None,
+                            hint="open the scene's dataset folder with a new workspace (features train with it)")
+        feat = self._features_for(cameras)
         if self.selection is None or mode == "new":
-            self.selection = sel.Selection()
-        self.selection.add_patch(torch.from_numpy(feat), patch, subtract=(mode == "sub"))
-        return _np(self.selection.similarity(torch.from_numpy(feat)))
+            self.selection = sel.Selection(teacher=str(self.workspace.settings.get("teacher", "default")),
+                                           cleanup=False)  # a free view has no training-view seed for 3D clean-up
+        self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
+        self.masks = None
+        return _np(self.selection.similarity(feat))
 
     def clear_selection(self) -> None:
         self.selection = None
+        self.masks = None
 
     def masks_for_all_views(self, threshold: float) -> int:
         """Compute and save the selection's mask for every training view (what the repaint uses); returns the count."""
@@ -173,29 +357,81 @@ class Engine:
         if self.selection is None:
             raise UserError("nothing is selected", hint="drag a rectangle over an object in the viewport first")
         sel = _backend("select")
-        masks = sel.masks_for_views(self.field, self.grid, self.scene.field_cameras("train"), self.selection,
-                                    threshold, workspace=self.workspace)
+        self.selection.threshold = sel.masks.check_threshold(threshold)
+        was_training = self.field.training
+        self.field.eval()
+        try:
+            with torch.no_grad():
+                masks = sel.masks_for_views(self.field, self.grid, self.scene.field_cameras("train").to(self.device),
+                                            self.selection, threshold, workspace=self.workspace,
+                                            names=list(self.scene.train.names or []) or None)
+        finally:
+            self.field.train(was_training)
+        self.selection.save(self.workspace)
+        self.masks = masks
         return len(masks)
 
     # ---- repaint (stage 2)
     def repaint(self, prompt: str, bg_prompt: str = "", backend: str = "offline", options: dict | None = None) -> dict:
-        """Start an edit of the masked region; `train_for` then advances it and renders preview it."""
+        """Start an edit of the masked region (paper Eq. s2); `train_for` then advances it.
+
+        `backend`: offline (recolor or remove, read from the prompt), recolor, remove, analytic (a synthetic
+        scene's edited/ variant) or sd. `options`: threshold (masks from the live selection when none were
+        applied yet), steps, lambda_unmask, sd_path, clip_path, color and other RepaintConfig fields.
+        """
         self._need_scene()
-        if not prompt.strip():
+        if backend not in GUIDANCES:
+            raise UserError(f"unknown guidance {backend!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
+        if backend in ("offline", "recolor", "remove", "sd") and not prompt.strip():
             raise UserError("the prompt is empty", hint="type what the selected region should become")
         rep = _backend("repaint")
-        self.edit = rep.RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, prompt=prompt,
-                                       bg_prompt=bg_prompt, backend=backend, **(options or {}))
+        opts = dict(options or {})
+        threshold = opts.pop("threshold", None)
+        kw = {k: opts.pop(k) for k in ("sd_path", "clip_path", "color") if k in opts}
+        if self.edit is not None:
+            self.cancel()
+        if self.masks is None:
+            if self.selection is not None:
+                from core.select.masks import DEFAULT_THRESHOLD
+
+                self.masks_for_all_views(DEFAULT_THRESHOLD if threshold is None else threshold)
+            else:
+                from core.select.masks import load_masks
+
+                try:
+                    self.masks = load_masks(self.workspace.masks_dir)
+                except WorkspaceError:
+                    raise UserError("nothing is selected",
+                                    hint="drag a rectangle over an object (Select patch), then press Repaint") from None
+        self._save_reconstruction()
+        opts.setdefault("snapshot_every", 0)  # the viewport re-renders the live field as the preview
+        self.edit = rep.RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
+                                       guidance=backend, prompt=prompt, bg_prompt=bg_prompt, device=self.device,
+                                       **kw, **opts)
+        self.stage1_frozen = True
         self.paused = False
-        return {"started": time.time()}
+        return {"started": time.time(), "guidance": self.edit.kind, "steps": int(self.edit.cfg.steps)}
+
+    def _save_reconstruction(self) -> None:
+        """Save the stage-1 field as a version when it trained since the last one, so undo returns to it."""
+        if self.stage1_frozen and self.workspace.current_version is not None:
+            return
+        if self.workspace.current_version is None or self.trainer.step_count != self._saved_step:
+            self.trainer.save_checkpoint()
+            self.trainer.save_version("reconstruction" if self.workspace.original_version is None
+                                      else f"reconstruction (step {self.trainer.step_count})")
+            self._saved_step = self.trainer.step_count
 
     def cancel(self) -> None:
         """Stop the running edit and go back to the field as it was before it."""
         if self.edit is not None:
             self.edit.cancel()
             self.edit = None
+            self._feature_cache = None
+            self.stage1_frozen = any(v.kind == "edit" for v in self.workspace.versions)
 
     def undo(self) -> bool:
+        """Go back one workspace version (a running edit is cancelled first); False when there is none."""
         return self._step_version(-1)
 
     def redo(self) -> bool:
@@ -203,27 +439,34 @@ class Engine:
 
     def _step_version(self, direction: int) -> bool:
         self._need_scene()
+        self.cancel()
         ws = self.workspace
-        info = (ws.undo() if direction < 0 else ws.redo()) if ws is not None else None
+        info = ws.undo() if direction < 0 else ws.redo()
         if info is None:
             return False
         self.trainer.load_version(ws.version_path(info))
+        self._feature_cache = None
+        self.masks = None
         return True
 
     # ---- persistence and export
     def save(self) -> str:
-        """Write the training checkpoint, and the reconstruction as the first version if there is none yet."""
+        """Write the training checkpoint and the selection; the reconstruction becomes the first version."""
         self._need_scene()
-        self.trainer.save_checkpoint()
+        if self.edit is None:
+            self.trainer.save_checkpoint()
         if self.workspace.original_version is None:
             self.trainer.save_version("reconstruction")
+            self._saved_step = self.trainer.step_count
+        if self.selection is not None and not self.selection.empty:
+            self.selection.save(self.workspace)
         return str(self.workspace.root)
 
     def export_png(self, cameras, path: str | Path) -> str:
         """Write the full-resolution render of `cameras` as a PNG."""
         import cv2
 
-        rgb = self.render(cameras, outputs=("rgb",))["rgb"]
+        rgb = self.render(cameras, outputs=("rgb",), full=True)["rgb"]
         img = (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8)
         path = Path(path)
         if not cv2.imwrite(str(path), img[..., ::-1]):
@@ -235,7 +478,12 @@ class Engine:
         import cv2
 
         path = Path(path)
-        frames = [(np.clip(self.render(c, outputs=("rgb",))["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
+        if not cameras_list:
+            raise UserError("no frames to write", path)
+        if not path.parent.is_dir():
+            raise UserError("cannot write the video: its folder does not exist", path,
+                            hint="choose a writable path ending in .mp4")
+        frames = [(np.clip(self.render(c, outputs=("rgb",), full=True)["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
                   for c in cameras_list]
         h, w = frames[0].shape[:2]
         writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))

@@ -5,7 +5,11 @@ from imgui_bundle import imgui
 
 from app.panels.common import remember_item, unavailable
 
-BACKENDS = ("offline", "sd")
+BACKENDS = ("offline", "recolor", "remove", "analytic", "sd")
+BACKEND_HELP = {"offline": "recolor or remove, read from the prompt (no model)", "recolor": "recolour to a colour named "
+                "in the prompt", "remove": "remove the object and fill in behind it",
+                "analytic": "the synthetic scene's edited/ variant (measurement)",
+                "sd": "Stable Diffusion score distillation (local model folder)"}
 
 
 def _model_status(app, kind: str, flag: str) -> str | None:
@@ -32,8 +36,12 @@ def draw(app) -> None:
     _, s.bg_prompt = imgui.input_text("Background prompt", s.bg_prompt)
     if imgui.begin_combo("Guidance", s.backend):
         for b in BACKENDS:
+            if b == "analytic" and not s.scene_info.get("has_edited"):
+                continue
             if imgui.selectable(b, s.backend == b)[0]:
                 s.backend = b
+            if imgui.is_item_hovered():
+                imgui.set_tooltip(BACKEND_HELP[b])
         imgui.end_combo()
     if s.backend == "sd":
         for kind, attr in (("sd", "sd_path"), ("clip", "clip_path")):
@@ -56,7 +64,7 @@ def draw(app) -> None:
         remember_item(app, "repaint")
     else:
         st = s.last_status
-        done = float(st.get("step", 0)) / max(1, s.steps) if st.get("phase") == "repaint" else 0.0
+        done = float(st.get("step", 0)) / max(1, st.get("steps", s.steps)) if st.get("phase") == "repaint" else 0.0
         imgui.progress_bar(min(done, 1.0), imgui.ImVec2(-1, 0))
         if imgui.button("Resume" if not s.training else "Pause"):
             app.set_training(not s.training)
