@@ -30,7 +30,14 @@ class Window:
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
         glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
         glfw.window_hint(glfw.VISIBLE, visible)
+        # EGL, not GLX: core's offscreen rasterizer (the scene generator) uses a standalone EGL context, and
+        # once a process has one, Mesa refuses a GLX context (BadAccess in glXMakeCurrent).
+        if os.environ.get("REPAINT_NERF_GL_API", "egl") == "egl":
+            glfw.window_hint(glfw.CONTEXT_CREATION_API, glfw.EGL_CONTEXT_API)
         self.handle = glfw.create_window(width, height, title, None, None)
+        if not self.handle:  # no EGL for this display: the platform's native API
+            glfw.window_hint(glfw.CONTEXT_CREATION_API, glfw.NATIVE_CONTEXT_API)
+            self.handle = glfw.create_window(width, height, title, None, None)
         if not self.handle:
             glfw.terminate()
             raise UserError("cannot create an OpenGL 3.3 window", hint="update the graphics driver (or Mesa)")
