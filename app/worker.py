@@ -192,6 +192,8 @@ class Worker:
         data.pop("feature", None)  # large; the UI only draws the projection
         if scale == self.controller.scale:
             self.controller.update(ms, at_scale=scale)
+        if data.pop("capped", False):  # the engine's finest for this view: no further refinement
+            scale = 1.0
         self._served = (req.serial, scale)
         self.results.put(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
         return True

@@ -295,8 +295,9 @@ class Engine:
         want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
         if self.selection is not None and "feature" not in want and self.has_feature_head():
             want = want + ("feature",)
-        if not full:
-            scale = min(scale, self._max_scale(cameras))
+        capped = not full and scale >= self._max_scale(cameras)
+        if capped:
+            scale = self._max_scale(cameras)
         opts = render.RenderOptions(outputs=want, background=self.trainer.eval_background(),
                                     max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
         was_training = self.field.training
@@ -311,7 +312,8 @@ class Engine:
             return None
         if "feature" in out:
             self._feature_cache = (self._camera_key(cameras), out["feature"].float().cpu())
-        result = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
+        result: dict = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
+        result["capped"] = capped  # the finest render this view gets: the viewport needs no refinement
         if self.selection is not None and "feature" in out:
             result["similarity"] = _np(self.selection.similarity(out["feature"].float()))
         return result
@@ -362,8 +364,11 @@ class Engine:
         self.field.eval()
         try:
             with torch.no_grad():
-                masks = sel.masks_for_views(self.field, self.grid, self.scene.field_cameras("train").to(self.device),
-                                            self.selection, threshold, workspace=self.workspace,
+                cams = self.scene.field_cameras("train").to(self.device)
+                opts = _backend("render").RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+                masks = sel.masks_for_views(self.field, self.grid, cams, self.selection, threshold,
+                                            workspace=self.workspace, cache=sel.ViewCache(self.field, self.grid, cams,
+                                                                                          render_opts=opts),
                                             names=list(self.scene.train.names or []) or None)
         finally:
             self.field.train(was_training)
