@@ -24,11 +24,12 @@ OUTPUTS = ("sigma", "rgb", "feature")
 class FieldConfig:
     """Everything that shapes a field; JSON-serialisable (dataclasses.asdict) and saved with checkpoints.
 
-    feature_head: "separate" = DFF's design (own low-resolution hash grid + MLP, view-independent, its
-    gradients never touch the geometry); "trunk" = a small MLP on the density trunk's hidden layer.
-    The default is "separate": measured cost per 100k points forward+backward is within noise of the
-    trunk head at these sizes (the feature grid is small and stays in cache, see core/bench/encoding.py),
-    and it keeps the feature loss from moving density and colour, which stage 2 relies on.
+    feature_head: "trunk" = a small MLP on the density trunk's hidden layer (the default); "separate" = DFF's
+    design (own low-resolution hash grid + MLP, view-independent; its gradients never touch the geometry).
+    Chosen by measurement (`repaint-nerf bench encoding --field-only`, 65k points, 32 feature dims, contended
+    2-core CPU, two runs): over the field without a head, the trunk head adds 0.4-0.6 s per 100k points
+    forward+backward, the separate head 0.9-3.1 s (0.7 s with 4 levels): its extra gather costs more than
+    the small MLP. Pick "separate" when the feature loss must not move density and colour.
     """
 
     levels: int = 16
@@ -42,7 +43,7 @@ class FieldConfig:
     sh_degree: int = 4
     density_activation: str = "trunc_exp"
     feature_dim: int = 0  # 0 = no feature head (costs nothing)
-    feature_head: str = "separate"
+    feature_head: str = "trunk"
     feature_levels: int = 8
     feature_log2_table: int = 15
     feature_base_res: int = 8
@@ -153,11 +154,13 @@ class NGPField(nn.Module):
 def default_field_config(device: torch.device | str | None = None, image_size: int = 800, **overrides) -> FieldConfig:
     """Field shape for the device and image size (longest side in pixels).
 
-    CUDA: instant-ngp's 16 levels x 2 features, 2^19 table, finest 2048. CPU: the hash gathers are
-    memory-bound (this 2-core VM moves 4-7 GB/s) and cost linear in the level count, so the CPU default
-    keeps the table in cache (2^16 rows x 2 features x fp32 = 0.5 MB per hashed level) and uses fewer levels;
-    the finest resolution follows the image (4 cells per pixel across the cube, at least 256, at most 2048),
-    since finer levels add no detail a 128-px view can show. Figures: `repaint-nerf bench encoding`.
+    CUDA: instant-ngp's 16 levels x 2 features, 2^19 table, finest 2048. CPU: cost grows with the level
+    count and with the table once it leaves cache. Measured (compiled path, 131k points, 16 levels, finest
+    2048, contended 2-core CPU, rough): forward+backward 0.23 Mpt/s at 2^14, 0.10 at 2^16; at 2^16 and
+    finest 512, 8 levels 0.14 Mpt/s vs 12 levels 0.09. So the CPU default takes the in-cache 2^14 table
+    (128 KB per hashed level) and 12 levels, and the finest resolution follows the image (4 cells per
+    pixel, 256..2048): finer levels add no detail a 128-px view can show. Reconstruction quality of these
+    shapes is for the recon benchmark to confirm. Figures: `repaint-nerf bench encoding`.
     """
     from core.device import get_device
 
@@ -172,4 +175,4 @@ def default_field_config(device: torch.device | str | None = None, image_size: i
 
 
 CPU_LEVELS = 12
-CPU_LOG2_TABLE = 16
+CPU_LOG2_TABLE = 14
