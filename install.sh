@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Installs everything the editor and its tests need into ./.venv (Debian 12, Python 3.11, as root).
-# System packages: Xvfb for GUI tests and headless use, Mesa for OpenGL (EGL/GLX), ffmpeg for turntable video.
+# System packages: Xvfb for GUI tests and headless use, Mesa for OpenGL (EGL/GLX), a C compiler for the
+# native hash-grid kernel (core/field/csrc) and torch.compile.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3.11}
 if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
   need=""
-  for p in xvfb xauth libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0; do
+  for p in xvfb xauth libegl1 libegl-mesa0 libgl1-mesa-dri libglx-mesa0 gcc g++ libc6-dev; do
     dpkg -s "$p" >/dev/null 2>&1 || need="$need $p"
   done
   if [ -n "$need" ]; then

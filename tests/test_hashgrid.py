@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from core.errors import UserError
-from core.field.encoding import HashGridEncoding, encoder_fn
+from core.field import hashgrid_native
+from core.field.encoding import AutoEncoder, HashGridEncoding, encoder_fn
 from core.field.hashgrid import GridSpec, dense_index, encode_reference, spatial_hash
 from core.field.hashgrid_fast import CompiledEncoder, encode_indexed, encode_vectorized
+from core.field.hashgrid_native import encode_native
 
 # float32 sums in another order: relative 1e-5, absolute 1e-5 of the largest value (input gradients
 # scale with the finest resolution, table gradients are sums over thousands of points)
@@ -48,7 +50,8 @@ SPECS = [GridSpec(levels=6, features=2, log2_table=12, base_res=4, finest_res=12
 
 
 @pytest.mark.parametrize("spec", SPECS, ids=["L6F2", "L3F4-bound2.5"])
-@pytest.mark.parametrize("fn", [encode_vectorized, encode_indexed], ids=["vectorized", "indexed"])
+@pytest.mark.parametrize("fn", [encode_vectorized, encode_indexed, encode_native],
+                         ids=["vectorized", "indexed", "native"])
 def test_eager_fast_paths_match_reference(spec, fn):
     assert any(spec.dense) and not all(spec.dense)  # both kinds of level are exercised
     x, table = _points(1500, spec.bound), _table(spec)
@@ -89,11 +92,37 @@ def test_compile_failure_falls_back_with_warning(monkeypatch):
 
 def test_compile_switch_by_env(monkeypatch):
     monkeypatch.setenv("REPAINT_NERF_COMPILE", "0")
-    assert encoder_fn("auto") is encode_indexed
+    assert encoder_fn("auto").other is encode_indexed
     assert encoder_fn("compiled") is encode_indexed
     monkeypatch.setenv("REPAINT_NERF_COMPILE", "1")
-    assert isinstance(encoder_fn("auto"), CompiledEncoder)
-    assert encoder_fn("auto", compile=False) is encode_indexed
+    assert isinstance(encoder_fn("auto").other, CompiledEncoder)
+    assert encoder_fn("auto", compile=False).other is encode_indexed
+
+
+def test_native_kernel_is_built_and_auto_uses_it_on_cpu():
+    spec = SPECS[0]
+    assert hashgrid_native.native_available(), hashgrid_native._failed  # CI has a C compiler: the fast path runs
+    x, table = _points(3000, spec.bound, seed=5), _table(spec)
+    assert hashgrid_native.usable(x, table, spec)
+    auto = encoder_fn("auto", compile=False)
+    assert isinstance(auto, AutoEncoder)
+    _assert_same(_value_and_grads(auto, x, table, spec), _value_and_grads(encode_reference, x, table, spec))
+    assert not hashgrid_native.usable(x.double(), table.double(), spec)  # float64 goes to the PyTorch path
+    torch.testing.assert_close(auto(x.double(), table.double(), spec), encode_reference(x.double(), table.double(), spec))
+
+
+def test_native_build_failure_falls_back_with_warning(monkeypatch, tmp_path):
+    monkeypatch.setattr(hashgrid_native, "_lib", None)
+    monkeypatch.setattr(hashgrid_native, "_failed", None)
+    monkeypatch.setenv("REPAINT_NERF_CACHE", str(tmp_path))  # nothing built there yet
+    monkeypatch.setenv("CC", "/bin/false")  # a compiler that always fails
+    spec = SPECS[0]
+    x, table = _points(200, spec.bound), _table(spec)
+    with pytest.warns(RuntimeWarning, match="native hash-grid kernel unavailable"):
+        out = encode_native(x, table, spec)
+    assert hashgrid_native._failed and not hashgrid_native.native_available()
+    torch.testing.assert_close(out, encode_reference(x, table, spec), atol=ATOL, rtol=RTOL)
+    assert not list(tmp_path.rglob("*.so"))  # no half-built library left behind
 
 
 def test_dense_levels_have_no_collisions():

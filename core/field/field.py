@@ -49,7 +49,7 @@ class FieldConfig:
     feature_base_res: int = 8
     feature_finest_res: int = 128
     feature_hidden: int = 64
-    encoding_impl: str = "auto"  # auto | reference | vectorized | indexed | compiled
+    encoding_impl: str = "auto"  # auto | reference | vectorized | indexed | compiled | native
     compile: bool = True  # $REPAINT_NERF_COMPILE=0 overrides to eager
     bound: float = 1.0  # field cube half-size
 

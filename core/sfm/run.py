@@ -159,6 +159,7 @@ def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, p
     its kind is chosen from the camera layout unless `kind` is given, and `extra['sfm']` holds the report.
     """
     from core.scene.kinds import detect_kind
+    from core.scene.normalize import normalize_scene
 
     if kind is not None and kind not in SCENE_KINDS:
         raise SceneError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
@@ -179,4 +180,5 @@ def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, p
         kind, why = detect_kind(scene)
         scene.extra["kind_reason"] = why
     scene.kind = kind
+    normalize_scene(scene)  # a scene is always handed out in field space, whoever asks for it
     return scene

@@ -1,0 +1,160 @@
+"""The hash encoding as a small native CPU kernel (core/field/csrc/hashgrid.c), called through ctypes.
+
+Eager PyTorch builds (N, L, 8) index and weight tensors and gathers from them; the kernel walks each point
+once, so on a CPU it is memory-bandwidth bound instead of allocation bound. It is compiled with the
+system C compiler on first use into a per-user cache (keyed by the source's hash) and falls back to the
+eager path with a warning when no compiler is available. CUDA tensors never come here.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import warnings
+from pathlib import Path
+
+import torch
+
+from core.field.hashgrid import GridSpec
+from core.field.hashgrid_fast import encode_vectorized
+
+ENV_NATIVE = "REPAINT_NERF_NATIVE"  # 0 disables the kernel
+SOURCE = Path(__file__).with_name("csrc") / "hashgrid.c"
+FLAGS = ["-O3", "-fPIC", "-shared", "-fopenmp", "-fno-fast-math", "-ffp-contract=off"]
+
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_failed: str | None = None
+
+
+def cache_dir() -> Path:
+    """Where built kernels live: $REPAINT_NERF_CACHE/native, else ~/.cache/repaint-nerf/native."""
+    root = os.environ.get("REPAINT_NERF_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "repaint-nerf")
+    return Path(root) / "native"
+
+
+def _build() -> Path:
+    src = SOURCE.read_bytes()
+    key = hashlib.sha1(src + " ".join(FLAGS).encode() + platform.machine().encode()).hexdigest()[:16]
+    out = cache_dir() / f"hashgrid-{key}.so"
+    if out.exists():
+        return out
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        raise RuntimeError("no C compiler found (install gcc, e.g. apt install build-essential)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".hashgrid-", suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        proc = subprocess.run([cc, *FLAGS, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{cc} failed: {proc.stderr.strip()[-800:]}")
+        os.replace(tmp, out)  # atomic: concurrent builders never load a half-written library
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
+    p, i64, i32, u32, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_uint32, ctypes.c_float
+    lib.hg_forward.argtypes = [p, i64, p, i32, i32, p, p, p, u32, f32, p, i32]
+    lib.hg_backward.argtypes = [p, i64, p, i32, i32, p, p, p, u32, f32, p, i32]
+    lib.hg_forward.restype = lib.hg_backward.restype = None
+    lib.hg_max_features.restype = ctypes.c_int
+    return lib
+
+
+def native_lib() -> ctypes.CDLL | None:
+    """The loaded kernel, building it on first use; None (after one warning) when it cannot be built."""
+    global _lib, _failed
+    if _lib is not None or _failed is not None:
+        return _lib
+    with _lock:
+        if _lib is None and _failed is None:
+            if os.environ.get(ENV_NATIVE, "1") == "0":
+                _failed = f"${ENV_NATIVE}=0"
+                return None
+            try:
+                _lib = _bind(ctypes.CDLL(str(_build())))
+            except Exception as exc:  # noqa: BLE001 - any build or load failure means: use the eager path
+                _failed = f"{type(exc).__name__}: {exc}"
+                warnings.warn(f"native hash-grid kernel unavailable ({_failed}); using the slower PyTorch path",
+                              RuntimeWarning, stacklevel=2)
+    return _lib
+
+
+def native_available() -> bool:
+    return native_lib() is not None
+
+
+class _Consts:
+    """Per-spec int tensors the kernel reads (kept alive with the spec)."""
+
+    _cache: dict = {}
+
+    def __init__(self, spec: GridSpec):
+        self.res = torch.tensor(spec.resolutions, dtype=torch.int32)
+        self.dense = torch.tensor([int(d) for d in spec.dense], dtype=torch.int32)
+        self.offsets = torch.tensor(spec.offsets, dtype=torch.int64)
+
+    @classmethod
+    def get(cls, spec: GridSpec) -> "_Consts":
+        if spec not in cls._cache:
+            cls._cache[spec] = cls(spec)
+        return cls._cache[spec]
+
+
+def _args(x: torch.Tensor, spec: GridSpec) -> tuple:
+    c = _Consts.get(spec)
+    return (c.res.data_ptr(), c.dense.data_ptr(), c.offsets.data_ptr(), spec.table_size - 1, float(spec.bound))
+
+
+class _NativeEncode(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, table, spec):
+        lib = native_lib()
+        n = x.shape[0]
+        out = torch.empty(n, spec.out_dim, dtype=torch.float32)
+        lib.hg_forward(x.data_ptr(), n, table.data_ptr(), spec.features, spec.levels, *_args(x, spec),
+                       out.data_ptr(), torch.get_num_threads())
+        ctx.save_for_backward(x, table)
+        ctx.spec = spec
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, table = ctx.saved_tensors
+        spec = ctx.spec
+        grad_x = grad_table = None
+        if ctx.needs_input_grad[1]:
+            g = grad_out.contiguous().float()
+            grad_table = torch.zeros_like(table)
+            native_lib().hg_backward(x.data_ptr(), x.shape[0], g.data_ptr(), spec.features, spec.levels,
+                                     *_args(x, spec), grad_table.data_ptr(), torch.get_num_threads())
+        if ctx.needs_input_grad[0]:
+            # input gradients are rare (no NeRF step needs them): recompute through plain autograd
+            with torch.enable_grad():
+                xd = x.detach().requires_grad_(True)
+                (grad_x,) = torch.autograd.grad(encode_vectorized(xd, table.detach(), spec), xd, grad_out)
+        return grad_x, grad_table, None
+
+
+def usable(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> bool:
+    """Whether the kernel handles these inputs: CPU float32 and a built library."""
+    return (x.device.type == "cpu" and table.device.type == "cpu" and x.dtype == torch.float32
+            and table.dtype == torch.float32 and spec.features <= 16 and native_lib() is not None)
+
+
+def encode_native(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
+    """(N, 3) field coords -> (N, L*F) with the native kernel (falls back to the indexed path when unusable)."""
+    if not usable(x, table, spec):
+        from core.field.hashgrid_fast import encode_indexed
+
+        return encode_indexed(x, table, spec)
+    return _NativeEncode.apply(x.contiguous(), table.contiguous(), spec)
