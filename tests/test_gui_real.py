@@ -24,7 +24,8 @@ def run_until(app, pred, timeout=60.0):
         if pred():
             return shot
         assert time.perf_counter() - t0 < timeout, \
-            f"timed out: {app.state.messages} {app.state.error} {[e[1] for e in app.events[-6:]]}"
+            f"timed out: {app.state.messages} {app.state.error} {[e[1] for e in app.events[-6:]]} " \
+            f"at step {app.state.history.steps[-1:]}"
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,9 @@ def save(shot, artifacts_dir, name):
 def test_open_train_orbit(editor, artifacts_dir):
     run_until(editor, lambda: editor.state.scene_info.get("loaded"), timeout=90)
     assert editor.state.scene_info["feature_head"]
-    run_until(editor, lambda: full_frame(editor) and len(editor.state.history.steps) >= 8, timeout=90)
+    # enough steps for the feature field to separate the objects (the selection below needs it)
+    run_until(editor, lambda: full_frame(editor) and editor.state.history.steps
+              and editor.state.history.steps[-1] >= 300, timeout=200)
     shot = frames(editor, 2)
     save(shot, artifacts_dir, "01_open")
     before = view_pixels(editor, shot)
@@ -65,8 +68,10 @@ def test_open_train_orbit(editor, artifacts_dir):
 
 def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     s = editor.state
+    editor.set_training(False)  # a still field, so pixel differences below are the overlay, not training
     s.tool = "select"
     run_until(editor, lambda: full_frame(editor))
+    time.sleep(0.3)
     rgb = view_pixels(editor, frames(editor, 2))
     # The patch goes on the centre of the view, where the framing puts the scene's objects.
     ox, oy = editor.image_origin
@@ -92,6 +97,10 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     before = view_pixels(editor, frames(editor, 2))
     click(editor, "prompt")
     frames(editor, 1, lambda io: io.add_input_characters_utf8("make it blue"))
+    from imgui_bundle import imgui
+
+    frames(editor, 1, lambda io: io.add_key_event(imgui.Key.enter, True))
+    frames(editor, 2, lambda io: io.add_key_event(imgui.Key.enter, False))
     assert s.prompt == "make it blue"
     s.backend, s.steps = "recolor", 12
     click(editor, "repaint")
