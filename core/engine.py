@@ -31,7 +31,6 @@ BACKENDS = {
     "workspace": "core.workspace.workspace",
 }
 WORKSPACE_MARKER = "workspace.json"
-DEPTH_CACHE = "depth_priors.safetensors"
 GUIDANCES = ("offline", "recolor", "remove", "analytic", "sd")
 # The viewport never renders finer than this multiple of the training images' long side (sharper than
 # the data adds nothing and costs seconds per frame on a CPU).
@@ -191,35 +190,14 @@ class Engine:
         return self.info()
 
     def _feature_targets(self, scene, ws, dims: int):
-        """Default-teacher features of the training images, computed once and cached in the workspace."""
-        from core.teachers.cache import build_feature_store
-        from core.teachers.feature_default import DefaultFeatureTeacher
+        from core.teachers.stage1_targets import feature_targets
 
-        teacher = DefaultFeatureTeacher()
-        store = build_feature_store(scene.train.images, teacher, ws.teachers_dir, dims=dims)
-        ws.update_settings(teacher=getattr(teacher, "name", "default"))
-        return store.codes
+        return feature_targets(scene, ws, dims)
 
     def _depth_priors(self, scene, ws):
-        """Sparse depth priors (SfM points, else triangulated from the known poses), cached in the workspace."""
-        from core.teachers.depth import DepthPriors
-        from core.teachers.depth_sparse import depth_for_scene
+        from core.teachers.stage1_targets import depth_priors
 
-        path = ws.teachers_dir / DEPTH_CACHE
-        if path.exists():
-            try:
-                priors = DepthPriors.load(path)
-                if len(priors) == len(scene.train):
-                    return priors
-            except UserError:
-                pass
-        try:
-            priors = depth_for_scene(scene)
-        except (UserError, ValueError, RuntimeError) as exc:  # too few matches: train without depth
-            self.notes.append(f"no depth priors ({str(exc).splitlines()[0]})")
-            return None
-        priors.save(path)
-        return priors
+        return depth_priors(scene, ws, self.notes)
 
     def info(self) -> dict:
         """Facts the panels show: scene name, views, field-space training cameras, what can be done."""

@@ -25,7 +25,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper)")
     p.add_argument("--max-samples", type=int, default=None,
-                   help="samples across the field cube's diagonal (default 1024, as instant-ngp); fewer is faster")
+                   help="samples across the field cube's diagonal (default: 2 per pixel of the images, 128..1024)")
+    p.add_argument("--no-features", action="store_true",
+                   help="skip the semantic feature field (faster; the workspace then cannot be selected in)")
+    p.add_argument("--no-depth", action="store_true", help="skip the sparse depth priors")
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds between checkpoints (0 = at the end)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -69,7 +72,14 @@ def run(args: argparse.Namespace) -> int:
         cfg.lr = args.lr
     if args.max_samples:
         cfg.max_samples = args.max_samples
-    trainer = Stage1Trainer(scene, ws, cfg, device=args.device)
+    from core.teachers.stage1_targets import depth_priors, feature_targets
+
+    notes: list[str] = []
+    features = None if args.no_features else feature_targets(scene, ws)  # paper Eq. s1: the feature field
+    depth = None if args.no_depth else depth_priors(scene, ws, notes)
+    for note in notes:
+        print(note, file=sys.stderr)
+    trainer = Stage1Trainer(scene, ws, cfg, device=args.device, feature_targets=features, depth_priors=depth)
     if args.resume:
         if trainer.resume():
             print(f"resumed at step {trainer.step_count} ({trainer.train_seconds:.0f} s trained)")
