@@ -15,6 +15,7 @@ from test_gui_editor import click, drag, frames, full_frame, view_pixels
 pytestmark = [pytest.mark.gui, pytest.mark.slow, pytest.mark.timeout(300)]
 # Eager hash grid: on a shared 2-core CPU the compiled kernel measured slower (see the engine report).
 os.environ.setdefault("REPAINT_NERF_COMPILE", "0")
+PRETRAIN_STEPS = 300
 
 
 def run_until(app, pred, timeout=60.0):
@@ -35,8 +36,16 @@ def editor(xvfb_display, scene_factory, tmp_path_factory):
     from core.engine import Engine
 
     path = scene_factory("demo", size=48, views=16, test_views=2)
+    ws = str(tmp_path_factory.mktemp("ws") / "ws")
+    # Reconstruct headlessly first (300 steps, the feature field needs them to separate the objects), so
+    # the GUI steps below never wait on how fast a loaded machine trains; the editor resumes from here.
+    pre = Engine("cpu")
+    pre.load(str(path), ws)
+    while pre.trainer.step_count < PRETRAIN_STEPS:
+        pre.train_for(1.0)
+    pre.save()
     window = Window(width=640, height=900)
-    app = EditorApp(window, Engine("cpu"), str(path), str(tmp_path_factory.mktemp("ws") / "ws"),
+    app = EditorApp(window, Engine("cpu"), str(path), ws,
                     worker_kwargs={"train_budget_s": 0.3, "rest_s": 0.05, "preview_interval_s": 0.5})
     yield app
     app.close()
@@ -50,9 +59,9 @@ def save(shot, artifacts_dir, name):
 def test_open_train_orbit(editor, artifacts_dir):
     run_until(editor, lambda: editor.state.scene_info.get("loaded"), timeout=90)
     assert editor.state.scene_info["feature_head"]
-    # enough steps for the feature field to separate the objects (the selection below needs it)
+    # the editor resumed the pre-trained reconstruction and trains on from it
     run_until(editor, lambda: full_frame(editor) and editor.state.history.steps
-              and editor.state.history.steps[-1] >= 300, timeout=200)
+              and editor.state.history.steps[-1] >= PRETRAIN_STEPS + 5, timeout=200)
     shot = frames(editor, 2)
     save(shot, artifacts_dir, "01_open")
     before = view_pixels(editor, shot)
