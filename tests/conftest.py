@@ -2,9 +2,6 @@
 from __future__ import annotations
 
 import os
-import shutil
-import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -26,21 +23,14 @@ def xvfb_display():
     if os.environ.get("DISPLAY"):
         yield os.environ["DISPLAY"]
         return
-    exe = shutil.which("Xvfb")
-    if exe is None:
-        pytest.fail("Xvfb is not installed: run `bash install.sh` (it installs the xvfb package)")
-    for num in range(99, 140):
-        if not Path(f"/tmp/.X{num}-lock").exists():
-            break
-    proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    for _ in range(100):
-        if Path(f"/tmp/.X11-unix/X{num}").exists():
-            break
-        time.sleep(0.05)
-    os.environ["DISPLAY"] = f":{num}"
+    from app.xvfb import start_xvfb
+
     try:
-        yield f":{num}"
+        proc, display = start_xvfb(99, 140)
+    except FileNotFoundError as exc:
+        pytest.fail(str(exc))
+    try:
+        yield display
     finally:
         proc.terminate()
         proc.wait(timeout=10)

@@ -10,23 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from test_gui_editor import click, drag, frames, full_frame, view_pixels
+from test_gui_editor import click, drag, frames, full_frame, run_until, view_pixels
 
 pytestmark = [pytest.mark.gui, pytest.mark.slow, pytest.mark.timeout(300)]
 # Eager hash grid: on a shared 2-core CPU the compiled kernel measured slower (see the engine report).
 os.environ.setdefault("REPAINT_NERF_COMPILE", "0")
 PRETRAIN_STEPS = 300
-
-
-def run_until(app, pred, timeout=60.0):
-    t0 = time.perf_counter()
-    while True:
-        shot = app.frame(capture=True)
-        if pred():
-            return shot
-        assert time.perf_counter() - t0 < timeout, \
-            f"timed out: {app.state.messages} {app.state.error} {[e[1] for e in app.events[-6:]]} " \
-            f"at step {app.state.history.steps[-1:]}"
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +112,11 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     assert changed.mean() > 0.002, "the repaint changed the view"
     bluer = (edited[..., 2] - edited[..., 0])[changed].mean() > (before[..., 2] - before[..., 0])[changed].mean()
     assert bluer, "changed pixels turned bluer"
+    # the repaint ran on the training loop and left it on: stop it first, or stage 1 would train on from
+    # the restored reconstruction before the screenshot
+    editor.set_training(False)
     click(editor, "undo")
     run_until(editor, lambda: any(e[1] == "reply:undo" for e in editor.events[-20:]))
-    editor.set_training(False)
     editor.worker.refresh()
     run_until(editor, lambda: full_frame(editor))
     time.sleep(0.3)

@@ -6,8 +6,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
-import subprocess
 import time
 from pathlib import Path
 
@@ -28,20 +26,14 @@ def _ensure_display():
     """Start an Xvfb for the run when there is no DISPLAY; returns the process to stop (or None)."""
     if os.environ.get("DISPLAY"):
         return None
-    exe = shutil.which("Xvfb")
-    if exe is None:
+    from app.xvfb import start_xvfb
+
+    try:
+        return start_xvfb(140, 200, "1920x1080x24")[0]
+    except FileNotFoundError:
         from core.errors import UserError
 
-        raise UserError("no DISPLAY and Xvfb is not installed", hint="run `bash install.sh` or set DISPLAY")
-    num = next(n for n in range(140, 200) if not Path(f"/tmp/.X{n}-lock").exists())
-    proc = subprocess.Popen([exe, f":{num}", "-screen", "0", "1920x1080x24", "-nolisten", "tcp"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    for _ in range(100):
-        if Path(f"/tmp/.X11-unix/X{num}").exists():
-            break
-        time.sleep(0.05)
-    os.environ["DISPLAY"] = f":{num}"
-    return proc
+        raise UserError("no DISPLAY and Xvfb is not installed", hint="run `bash install.sh` or set DISPLAY") from None
 
 
 def _pct(xs, q):
