@@ -46,7 +46,7 @@ class EditorApp:
         self.image_origin = (0.0, 0.0)
         self.requested_key: tuple | None = None
         self.max_fps = float(os.environ.get("REPAINT_NERF_MAX_FPS", "30"))
-        self._last_frame = 0.0
+        self._frame_started = 0.0
         self.shown_key: tuple | None = None
         self.frames_shown = 0
         self.last_frame: Frame | None = None
@@ -281,10 +281,10 @@ class EditorApp:
         Frames are paced to at most `max_fps`: without a GPU (or vsync, as under Xvfb) an unpaced loop
         spends both cores drawing the same picture and the training worker got 0.7 steps/s instead of 5.6.
         """
-        wait = self._last_frame + 1.0 / self.max_fps - time.perf_counter()
+        wait = self._frame_started + 1.0 / self.max_fps - time.perf_counter()
         if wait > 0:
             time.sleep(wait)
-        self._last_frame = time.perf_counter()
+        self._frame_started = time.perf_counter()
         self.window.begin_frame()
         for msg in self.worker.poll():
             self._handle(msg)

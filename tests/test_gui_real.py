@@ -117,9 +117,10 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     editor.set_training(False)
     click(editor, "undo")
     run_until(editor, lambda: any(e[1] == "reply:undo" for e in editor.events[-20:]))
+    stale = editor.last_frame
     editor.worker.refresh()
-    run_until(editor, lambda: full_frame(editor))
-    time.sleep(0.3)
-    shot = frames(editor, 3)
+    # a new final frame, not the one on screen from before the undo (progressive renders come first)
+    run_until(editor, lambda: editor.last_frame is not stale and full_frame(editor))
+    shot = frames(editor, 1)
     save(shot, artifacts_dir, "05_undo")
     assert np.abs(view_pixels(editor, shot) - before).mean() < np.abs(edited - before).mean() / 2
