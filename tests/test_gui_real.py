@@ -12,7 +12,7 @@ import pytest
 
 from test_gui_editor import click, drag, frames, full_frame, run_until, view_pixels
 
-pytestmark = [pytest.mark.gui, pytest.mark.slow, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.gui, pytest.mark.slow, pytest.mark.timeout(600)]  # setup pre-trains: ~40 s idle
 # Eager hash grid: on a shared 2-core CPU the compiled kernel measured slower (see the engine report).
 os.environ.setdefault("REPAINT_NERF_COMPILE", "0")
 PRETRAIN_STEPS = 300
