@@ -110,7 +110,7 @@ class _Consts:
         return cls._cache[spec]
 
 
-def _args(x: torch.Tensor, spec: GridSpec) -> tuple:
+def _args(spec: GridSpec) -> tuple:
     c = _Consts.get(spec)
     return (c.res.data_ptr(), c.dense.data_ptr(), c.offsets.data_ptr(), spec.table_size - 1, float(spec.bound))
 
@@ -121,7 +121,7 @@ class _NativeEncode(torch.autograd.Function):
         lib = native_lib()
         n = x.shape[0]
         out = torch.empty(n, spec.out_dim, dtype=torch.float32)
-        lib.hg_forward(x.data_ptr(), n, table.data_ptr(), spec.features, spec.levels, *_args(x, spec),
+        lib.hg_forward(x.data_ptr(), n, table.data_ptr(), spec.features, spec.levels, *_args(spec),
                        out.data_ptr(), torch.get_num_threads())
         ctx.save_for_backward(x, table)
         ctx.spec = spec
@@ -136,7 +136,7 @@ class _NativeEncode(torch.autograd.Function):
             g = grad_out.contiguous().float()
             grad_table = torch.zeros_like(table)
             native_lib().hg_backward(x.data_ptr(), x.shape[0], g.data_ptr(), spec.features, spec.levels,
-                                     *_args(x, spec), grad_table.data_ptr(), torch.get_num_threads())
+                                     *_args(spec), grad_table.data_ptr(), torch.get_num_threads())
         if ctx.needs_input_grad[0]:
             # input gradients are rare (no NeRF step needs them): recompute through plain autograd
             with torch.enable_grad():
