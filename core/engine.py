@@ -171,10 +171,12 @@ class Engine:
         if header and header.get("train_config"):
             train_cfg = stage1.TrainConfig.from_dict(header["train_config"])
         want_features = self.use_features and (field_cfg is None or getattr(field_cfg, "feature_dim", 0) > 0)
+        from core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
+
         self.notes = []
-        features = self._feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or 12) \
+        features = feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or FEATURE_DIMS) \
             if want_features else None
-        depth = self._depth_priors(scene, ws) if self.use_depth else None
+        depth = depth_priors(scene, ws, self.notes) if self.use_depth else None
         trainer = stage1.Stage1Trainer(scene, ws, train_cfg, field_cfg, device=self.device,
                                        feature_targets=features, depth_priors=depth)
         if ckpt.exists():
@@ -188,16 +190,6 @@ class Engine:
         self.stage1_frozen = any(v.kind == "edit" for v in ws.versions)
         self._saved_step = trainer.step_count if version is not None else -1
         return self.info()
-
-    def _feature_targets(self, scene, ws, dims: int):
-        from core.teachers.stage1_targets import feature_targets
-
-        return feature_targets(scene, ws, dims)
-
-    def _depth_priors(self, scene, ws):
-        from core.teachers.stage1_targets import depth_priors
-
-        return depth_priors(scene, ws, self.notes)
 
     def info(self) -> dict:
         """Facts the panels show: scene name, views, field-space training cameras, what can be done."""

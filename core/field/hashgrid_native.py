@@ -147,8 +147,11 @@ class _NativeEncode(torch.autograd.Function):
 
 def usable(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> bool:
     """Whether the kernel handles these inputs: CPU float32 and a built library."""
-    return (x.device.type == "cpu" and table.device.type == "cpu" and x.dtype == torch.float32
-            and table.dtype == torch.float32 and spec.features <= 16 and native_lib() is not None)
+    if not (x.device.type == "cpu" and table.device.type == "cpu" and x.dtype == torch.float32
+            and table.dtype == torch.float32):
+        return False
+    lib = native_lib()
+    return lib is not None and spec.features <= lib.hg_max_features()
 
 
 def encode_native(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
