@@ -159,7 +159,8 @@ class Engine:
                 raise WorkspaceError(f"this workspace holds another scene ({old})", ws.root,
                                      hint="pass another --workspace folder")
             ws.update_settings(scene=key)
-        scene = loader.load_scene(scene_path, float(ws.settings.get("downscale", 1.0)), workspace=ws.root)
+        scene = loader.load_scene(scene_path, float(ws.settings.get("downscale", 1.0)), kind=ws.settings.get("kind"),
+                                  workspace=ws.root)
 
         ckpt = ws.checkpoints_dir / stage1.CHECKPOINT_NAME
         version = ws.current_version

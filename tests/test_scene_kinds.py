@@ -1,11 +1,13 @@
 """Scene-kind detection on the presets' camera layouts, and the bounded parametrisations (contraction, NDC)."""
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
 
-from core.field.contraction import NDCWarp, WarpedField, contract, mean_pose, uncontract
+from core.field.contraction import NDCWarp, contract, make_warp, mean_pose, uncontract
 from core.scene.kinds import choose_kind, kind_from_layout
 from core.synth.presets import build_spec
 from core.synth.raster import world_bbox
@@ -107,42 +109,149 @@ def test_mean_pose_is_a_rotation():
     assert np.allclose(m[:3, :3].T @ m[:3, :3], np.eye(3), atol=1e-9) and np.linalg.det(m[:3, :3]) > 0
 
 
-def test_warped_field_evaluates_the_inner_field_at_warped_points():
-    class Toy(torch.nn.Module):
-        def __init__(self):
-            super().__init__()
-            self.w = torch.nn.Parameter(torch.ones(3))
-
-        def density(self, x):
-            return (x * self.w).sum(-1)
-
-        def forward(self, x, d, outputs=("rgb",)):
-            return {"sigma": self.density(x), "rgb": x.abs()}
-
-        def parameter_groups(self):
-            return {"grid": [self.w]}
-
-    toy = Toy()
-    f = WarpedField(toy, contract, bound=16.0)
-    x = torch.tensor([[0.5, 0.0, 0.0], [4.0, 0.0, 0.0]])
-    assert torch.allclose(f.density(x), torch.tensor([0.25, 0.5 * (2 - 0.25)]))
-    out = f(x, torch.zeros_like(x), outputs=("rgb",))
-    assert torch.allclose(out["rgb"], contract(x).abs()) and f.bound == 16.0
-    assert f.parameter_groups()["grid"][0] is toy.w
-    f.density(x).sum().backward()
-    assert toy.w.grad is not None
+def test_ndc_inverse_and_spec_round_trip():
+    c2w = mean_pose(_layout("forward")[1])
+    warp = NDCWarp(c2w, 60.0, 50.0, 64.0, 48.0, 0.3)
+    back = make_warp(warp.to_dict())
+    g = torch.Generator().manual_seed(0)
+    y = torch.rand(2000, 3, generator=g) * 1.98 - 0.99
+    assert torch.allclose(back(back.inverse(y)), y, atol=1e-4)
+    x = torch.randn(100, 3, generator=g)
+    assert torch.equal(back(x), warp(x))
+    behind = torch.as_tensor(c2w[:3, 3] + 0.5 * c2w[:3, 2], dtype=torch.float32)[None]  # behind the camera
+    assert float(warp(behind)[0, 2]) < -1.0  # maps outside the box: no density there
 
 
-@pytest.mark.slow  # importing the real field can compile its grid (minutes on a busy CPU)
-def test_warped_ngp_field_sees_far_points_inside_its_cube():
-    field_mod = pytest.importorskip("core.field.field")
+def test_contract_warp_inverse():
+    w = make_warp({"kind": "contract", "extent": 16.0, "cone": 1 / 256})
+    y = torch.rand(3000, 3, generator=torch.Generator().manual_seed(2)) * 1.99 - 0.995
+    assert torch.allclose(w(w.inverse(y)), y, atol=1e-5)
+
+
+def test_unknown_warp_is_a_clear_error():
+    from core.errors import UserError
+
+    with pytest.raises(UserError, match="unknown space warp"):
+        make_warp({"kind": "sphere"})
+
+
+def _tiny_field(warp=None):
+    from core.field.field import FieldConfig, NGPField
+
     torch.manual_seed(0)
-    inner = field_mod.NGPField(field_mod.FieldConfig(levels=2, log2_table=10, base_res=4, finest_res=8, hidden=16))
+    return NGPField(FieldConfig(levels=2, log2_table=10, base_res=4, finest_res=8, hidden=16,
+                                encoding_impl="reference", compile=False, warp=warp))
+
+
+def test_warped_field_sees_far_points_inside_its_cube():
+    plain, warped = _tiny_field(), _tiny_field({"kind": "contract", "extent": 16.0, "cone": 1 / 256})
     far = torch.tensor([[10.0, 3.0, -2.0], [100.0, 0.0, 0.0]])
-    assert torch.all(inner.density(far) == 0)  # outside the plain field's cube
-    warped = WarpedField(inner, contract, bound=16.0)
-    assert warped.cfg.bound == 16.0 and inner.cfg.bound == 1.0
-    assert torch.allclose(warped.density(far), inner.density(contract(far)))
+    assert torch.all(plain.density(far) == 0)  # outside the plain field's cube
+    assert torch.allclose(warped.density(far), plain.density(contract(far)))
     assert torch.all(warped.density(far) > 0)
     out = warped(far, torch.nn.functional.normalize(far, dim=-1), outputs=("rgb",))
     assert out["rgb"].shape == (2, 3) and torch.isfinite(out["rgb"]).all()
+    assert warped.march() == (16.0, 1 / 256) and plain.march() == (1.0, 0.0)
+
+
+def test_cone_steps_grow_with_distance_and_invert():
+    from core.render.raymarch import _cone_steps, _cone_t
+
+    t0 = torch.tensor([0.0, 0.5, 3.0])
+    k = torch.arange(0, 400, dtype=torch.float32)[:, None].expand(-1, 3)
+    t = _cone_t(t0.expand_as(k), k, 0.01, 0.02)
+    dt = t[1:] - t[:-1]
+    assert torch.all(dt > 0) and torch.allclose(t[0], t0)
+    assert torch.allclose(dt[:, 2], 0.02 * t[:-1, 2], rtol=1e-3)  # past the knee (0.5): step = cone * t
+    assert torch.allclose(dt[:20, 0], torch.full((20,), 0.01), atol=1e-6)  # before it: the base step
+    back = _cone_steps(t0.expand_as(k), t, 0.01, 0.02)
+    assert torch.allclose(back, k, atol=2e-3)
+
+
+def test_warped_grid_skips_in_warped_space_and_renders_like_without_skipping():
+    """A contracted field with density only in a far shell: the grid (in contracted space) learns where it
+    is, rendering with it matches rendering without skipping, and rays reach the far shell."""
+    from core.render.occupancy import grid_for_field
+    from core.render.renderer import RenderOptions, render_rays
+
+    class Shell(torch.nn.Module):  # far shell between |x|_inf 4 and 8 (two cells deep), coloured by position
+        warp = make_warp({"kind": "contract", "extent": 16.0, "cone": 1 / 256})
+        cfg = type("C", (), {"bound": 1.0})()
+
+        def march(self):
+            return 16.0, 1 / 256
+
+        def density(self, x):
+            m = x.abs().amax(-1)
+            return torch.where((m > 4) & (m < 8), torch.full_like(m, 5.0), torch.zeros_like(m))
+
+        def forward(self, x, d, outputs=("rgb",)):
+            return {"sigma": self.density(x), "rgb": torch.sigmoid(x / 3.0)}
+
+    f = Shell()
+    grid = grid_for_field(f, 64, device="cpu", warmup_steps=10 ** 9)
+    assert grid.extent == 16.0 and grid.warp is f.warp
+    for step in range(0, 16 * 16, 16):  # jittered sweeps, as training makes them
+        grid.update(step, f.density)
+    assert 0.0 < grid.occupied_fraction() < 0.5
+    g = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g), dim=-1)
+    o = torch.zeros(300, 3)
+    opts = RenderOptions(outputs=("rgb", "opacity", "depth"), max_samples=256)
+    with_grid = render_rays(f, grid, o, d, opts)
+    without = render_rays(f, None, o, d, opts)
+    assert torch.allclose(with_grid["rgb"], without["rgb"], atol=2e-3)
+    assert float(with_grid["opacity"].min()) > 0.99  # every ray is stopped by the shell
+    assert float(with_grid["depth"].min()) >= 4.0 - 1e-3 and float(with_grid["depth"].max()) <= 8.0 * 3 ** 0.5
+    assert with_grid["stats"]["samples"] < without["stats"]["samples"]
+
+
+@pytest.mark.parametrize("preset,kind", [("room360", "contract"), ("forward", "ndc")])
+def test_warped_scene_trains_saves_and_renders(tmp_path, preset, kind):
+    """Forward and 360 presets train with their warp (chosen from the scene kind), raise test PSNR,
+    and a saved checkpoint restores the warp and renders identically."""
+    from core.render.renderer import RenderOptions, render_camera
+    from core.scene.loaders.detect import load_scene
+    from core.synth.generate import make_scene
+    from core.train.checkpoint import Checkpoint
+    from core.train.stage1 import Stage1Trainer, TrainConfig, restore_field
+
+    make_scene(preset, tmp_path / "s", size=32, views=16, test_views=3, seed=0)
+    for split in ("train", "test"):  # a capture has no box around its content: that is what the warp is for
+        meta_path = tmp_path / "s" / f"transforms_{split}.json"
+        meta = json.loads(meta_path.read_text())
+        meta.pop("aabb")
+        meta_path.write_text(json.dumps(meta))
+    scene = load_scene(tmp_path / "s")
+    tr = Stage1Trainer(scene, train_cfg=TrainConfig(rays_per_batch=1024, grid_resolution=32, seed=0))
+    assert tr.field_cfg.warp["kind"] == kind and tr.grid.warp is not None
+    before = tr.evaluate()["psnr"]
+    tr.train(steps=120)
+    after = tr.evaluate()["psnr"]
+    assert after > before + 3.0, (before, after)
+    path = tmp_path / "ck.safetensors"
+    tr.checkpoint().save(path)
+    field, grid, _ = restore_field(Checkpoint.load(path, "cpu"), "cpu")
+    assert field.cfg.warp == tr.field_cfg.warp and grid.extent == tr.grid.extent
+    cams = scene.field_cameras("test")
+    opts = RenderOptions(outputs=("rgb",), max_samples=tr.cfg.max_samples)
+    tr.field.eval()
+    a = render_camera(tr.field, tr.grid, cams, 0, opts)["rgb"]
+    b = render_camera(field, grid, cams, 0, opts)["rgb"]
+    assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("preset,kind", [("demo", "bounded"), ("room360", "unbounded"), ("forward", "forward")])
+def test_a_dataset_without_a_kind_gets_it_from_its_camera_layout(tmp_path, preset, kind):
+    from core.scene.loaders.detect import load_scene
+    from core.synth.generate import make_scene
+
+    make_scene(preset, tmp_path / "s", size=16, views=12, test_views=2, seed=0)
+    for split in ("train", "test"):
+        meta_path = tmp_path / "s" / f"transforms_{split}.json"
+        meta = json.loads(meta_path.read_text())
+        meta.pop("scene_kind")
+        meta_path.write_text(json.dumps(meta))
+    scene = load_scene(tmp_path / "s")
+    assert scene.kind == kind and scene.extra["kind_reason"]
+    assert load_scene(tmp_path / "s", kind="bounded").kind == "bounded"  # the override wins

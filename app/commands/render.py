@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from core.render.renderer import RenderOptions, render_camera
     from app.camera_control import CameraControl
     from core.scene.cameras import Cameras
-    from core.scene.loaders.detect import load_scene
+    from core.scene.loaders.detect import load_workspace_scene
     from core.train.checkpoint import Checkpoint
     from core.train.metrics import psnr
     from core.train.stage1 import CHECKPOINT_NAME, restore_field, target_image
@@ -61,9 +61,7 @@ def run(args: argparse.Namespace) -> int:
         raise WorkspaceError("the workspace has no trained field yet", ws.root,
                              hint=f"run: repaint-nerf train SCENE --workspace {ws.root}")
     field, grid, header = restore_field(Checkpoint.load(ck_path), args.device)
-    settings = ws.settings
-    scene_root = settings.get("scene") or header["scene"]["root"]
-    scene = load_scene(Path(scene_root), settings.get("downscale", 1.0))
+    scene = load_workspace_scene(ws.settings, header)
     device = next(field.parameters()).device
     bg = torch.tensor(scene.background or (1.0, 1.0, 1.0), dtype=torch.float32, device=device)
     outputs = ("rgb", "depth") if args.depth else ("rgb",)

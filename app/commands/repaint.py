@@ -6,7 +6,6 @@ import argparse
 import signal
 import sys
 import threading
-from pathlib import Path
 
 NAME = "repaint"
 HELP = "repaint the selected region (stage 2) under a guidance and save it as a new workspace version"
@@ -67,7 +66,7 @@ def check_args(args: argparse.Namespace) -> None:
 def open_workspace(path: str, device=None):
     """(workspace, scene, field, grid, masks) of a workspace's current version and its selection's masks."""
     from core.errors import WorkspaceError
-    from core.scene.loaders.detect import load_scene
+    from core.scene.loaders.detect import load_workspace_scene
     from core.select.masks import load_masks
     from core.train.checkpoint import Checkpoint
     from core.train.stage1 import CHECKPOINT_NAME, restore_field
@@ -84,9 +83,7 @@ def open_workspace(path: str, device=None):
                              hint=f"run `repaint-nerf select {ws.root} --view I --patch x0,y0,x1,y1` first")
     masks = load_masks(ws.masks_dir)
     field, grid, header = restore_field(Checkpoint.load(ck_path), device)
-    settings = ws.settings
-    scene_root = settings.get("scene") or header["scene"]["root"]
-    scene = load_scene(Path(scene_root), settings.get("downscale", 1.0))
+    scene = load_workspace_scene(ws.settings, header)
     return ws, scene, field, grid, masks
 
 

@@ -29,7 +29,7 @@ def load_trained(workspace, device=None):
     """(field, grid, header, scene) of a workspace's current version (else its checkpoint); the scene's
     normalisation is the one the field was trained in. A field without a feature head is a UserError."""
     from core.errors import WorkspaceError
-    from core.scene.loaders.detect import load_scene
+    from core.scene.loaders.detect import load_workspace_scene
     from core.scene.scene import Normalization
     from core.train.checkpoint import Checkpoint
     from core.train.stage1 import CHECKPOINT_NAME, restore_field
@@ -44,9 +44,7 @@ def load_trained(workspace, device=None):
         raise WorkspaceError("this workspace's field was trained without a feature head, so it cannot select",
                              ck_path, hint="train it again with teacher features (a feature head), then select")
     field, grid, header = restore_field(ckpt, device)
-    settings = workspace.settings
-    scene_root = settings.get("scene") or header["scene"]["root"]
-    scene = load_scene(Path(scene_root), settings.get("downscale", 1.0))
+    scene = load_workspace_scene(workspace.settings, header)
     if header.get("scene", {}).get("norm"):
         scene.norm = Normalization.from_dict(header["scene"]["norm"])
     return field, grid, header, scene

@@ -20,6 +20,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     budget.add_argument("--seconds", type=float, default=None,
                         help="total training seconds (default 120 when neither is given)")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (2 halves the size)")
+    p.add_argument("--kind", default=None, choices=("bounded", "forward", "unbounded"),
+                   help="scene kind (default: the dataset's, else detected from the camera layout)")
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
@@ -62,9 +64,9 @@ def run(args: argparse.Namespace) -> int:
     if old and old != scene_key and ws.original_version is not None:
         raise WorkspaceError(f"this workspace holds a reconstruction of another scene ({old})", ws.root,
                              hint="pass a new folder to --workspace")
-    ws.update_settings(scene=scene_key, downscale=args.downscale)
+    ws.update_settings(scene=scene_key, downscale=args.downscale, kind=args.kind)
 
-    scene = load_scene(scene_path, args.downscale, workspace=args.workspace)  # SfM of a photo folder is cached there
+    scene = load_scene(scene_path, args.downscale, kind=args.kind, workspace=args.workspace)  # SfM of a photo folder is cached there
     cfg = TrainConfig(seed=args.seed, checkpoint_every_s=args.checkpoint_every)
     if args.rays:
         cfg.rays_per_batch = args.rays

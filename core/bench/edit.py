@@ -158,12 +158,12 @@ def run(args: argparse.Namespace) -> int:
         grid_state = s1.grid.state_dict()
 
         def make():
-            from core.render.occupancy import OccupancyGrid
+            from core.render.occupancy import grid_for_field
             from core.train.stage1 import make_field
 
             f, _ = make_field(s1.field_cfg, device)
             f.load_state_dict(field_state)
-            g = OccupancyGrid(s1.cfg.grid_resolution, s1.cfg.grid_cascades, s1.grid.bound, device=device)
+            g = grid_for_field(f, s1.cfg.grid_resolution, s1.cfg.grid_cascades, device=device)
             g.load_state_dict(grid_state)
             return f, g
 

@@ -110,7 +110,7 @@ def render_figures(trainer) -> dict:
     import torch
 
     from core.device import synchronize
-    from core.render.occupancy import OccupancyGrid
+    from core.render.occupancy import grid_for_field
     from core.render.renderer import RenderOptions, render_camera
 
     split = trainer.eval_split()
@@ -129,7 +129,7 @@ def render_figures(trainer) -> dict:
             synchronize(trainer.device)
             times.append(time.perf_counter() - t0)
         g = trainer.grid
-        full = OccupancyGrid(resolution=g.resolution, cascades=g.cascades, bound=g.bound, device=trainer.device)
+        full = grid_for_field(trainer.field, g.resolution, g.cascades, device=trainer.device)
         full.mark_all()
         out_full = render_camera(trainer.field, full, cams, 0, opts, scale=scale)
         # training-style rendering (no early stop between rounds), for the samples a step actually evaluates

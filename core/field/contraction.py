@@ -4,21 +4,24 @@
   contract(x) = x for |x| <= 1, (2 - 1/|x|) x/|x| otherwise, which maps R^3 into the radius-2 ball
   (L2 norm) or the [-2, 2]^3 cube (L-inf norm, which fills a cubic grid); we halve it into [-1, 1]^3.
 - forward-facing captures: NeRF's normalised device coordinates of a reference camera (NeRF appendix C),
-  x' = -fx/(W/2) * x/z, y' = -fy/(H/2) * y/z, z' = 1 + 2 near/z, mapping the frustum from the near plane
-  to infinity onto [-1, 1]^3 (camera looks down -z, OpenGL).
+  x' = -ax x/z, y' = -ay y/z, z' = 1 + 2 near/z, mapping the frustum from the near plane to infinity
+  onto [-1, 1]^3 (camera looks down -z, OpenGL).
 
-Both act point-wise, so the renderer keeps marching straight rays in field space: `WarpedField` wraps
-any field (density/forward/parameter_groups as in docs/CONTRACTS.md) and evaluates it at warped points.
+Both act point-wise: the renderer keeps marching straight rays in field space (with steps that grow
+with distance, `cone`), the field evaluates its hash grid at warped points and the occupancy grid
+lives in warped space. A warp is described by a JSON-able spec (saved in the field config):
+{"kind": "contract" | "ndc", "extent": marching half-size in field units, "cone": step growth, ...}.
 """
 from __future__ import annotations
-
-from dataclasses import replace as dc_replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
 SCENE_WARPS = {"bounded": None, "unbounded": "contract", "forward": "ndc"}
+CONE = 1.0 / 256.0  # instant-ngp's cone angle for large scenes: a step is at least t/256
+CONTRACT_EXTENT = 16.0  # rays stop where the contraction has covered 97% of its range
+NDC_FAR_FACTOR = 4.0  # forward scenes: march to 4x the farthest training depth
 
 
 def _norm(x: Tensor, kind: str) -> Tensor:
@@ -43,24 +46,69 @@ def uncontract(y: Tensor, norm: str = "inf") -> Tensor:
     return torch.where(n <= 1.0, z, z / n * r)
 
 
-class NDCWarp:
-    """Forward-facing warp: world (field-space) points -> NDC of a reference camera, in [-1, 1]^3."""
+class ContractWarp:
+    """Unbounded scenes: field-space points -> the halved L-inf contraction in [-1, 1]^3."""
 
-    def __init__(self, ref_c2w: np.ndarray | Tensor, fx: float, fy: float, width: float, height: float,
-                 near: float):
+    def __init__(self, spec: dict):
+        self.spec = dict(spec)
+
+    def __call__(self, x: Tensor) -> Tensor:
+        return contract(x, "inf")
+
+    def inverse(self, y: Tensor) -> Tensor:
+        """Field-space points for grid points y (clamped inside the open box so infinity is not reached)."""
+        return uncontract(y.clamp(-1.0 + 1e-4, 1.0 - 1e-4), "inf")
+
+
+class NDCWarp:
+    """Forward-facing warp: field-space points -> NDC of a reference camera, [-1, 1]^3 inside its frustum.
+
+    Points behind the near plane map outside the box (z' < -1), so the field gives them no density.
+    """
+
+    def __init__(self, ref_c2w: np.ndarray | Tensor | None = None, fx: float = 1.0, fy: float = 1.0,
+                 width: float = 2.0, height: float = 2.0, near: float = 1.0, spec: dict | None = None):
+        if spec is not None:
+            self.spec = dict(spec)
+            self.w2c = torch.tensor(spec["w2c"], dtype=torch.float32)
+            self.ax, self.ay, self.near = float(spec["ax"]), float(spec["ay"]), float(spec["near"])
+            return
         c2w = torch.as_tensor(np.asarray(ref_c2w, dtype=np.float64))
         self.w2c = torch.linalg.inv(c2w).float()
         self.ax, self.ay = float(2.0 * fx / width), float(2.0 * fy / height)
         self.near = float(near)
+        self.spec = self.to_dict()
 
     def __call__(self, x: Tensor) -> Tensor:
-        w2c = self.w2c.to(x.device)
+        w2c = self.w2c.to(x.device, x.dtype)
         p = x @ w2c[:3, :3].T + w2c[:3, 3]
-        z = torch.minimum(p[:, 2:3], torch.full_like(p[:, 2:3], -self.near))  # in front of the near plane
+        z = p[:, 2:3].clamp(max=-1e-6)  # behind the camera: z' << -1, outside the box
         return torch.cat([-self.ax * p[:, 0:1] / z, -self.ay * p[:, 1:2] / z, 1.0 + 2.0 * self.near / z], dim=-1)
 
+    def inverse(self, y: Tensor) -> Tensor:
+        """Field-space points for NDC points y (z' clamped below 1, i.e. short of infinity)."""
+        w2c = self.w2c.to(y.device, y.dtype)
+        z = 2.0 * self.near / (y[:, 2:3].clamp(max=1.0 - 1e-4) - 1.0)
+        p = torch.cat([-y[:, 0:1] * z / self.ax, -y[:, 1:2] * z / self.ay, z], dim=-1)
+        r = w2c[:3, :3]
+        return (p - w2c[:3, 3]) @ r  # r^T (p - t), row-vector form
+
     def to_dict(self) -> dict:
-        return {"w2c": self.w2c.tolist(), "ax": self.ax, "ay": self.ay, "near": self.near}
+        return {"kind": "ndc", "w2c": self.w2c.tolist(), "ax": self.ax, "ay": self.ay, "near": self.near}
+
+
+def make_warp(spec: dict | None):
+    """The warp object for a spec (None for bounded scenes)."""
+    if not spec:
+        return None
+    from core.errors import UserError
+
+    if spec.get("kind") == "contract":
+        return ContractWarp(spec)
+    if spec.get("kind") == "ndc":
+        return NDCWarp(spec=spec)
+    raise UserError(f"unknown space warp {spec.get('kind')!r} in the field config",
+                    hint="the checkpoint comes from a newer version; retrain or update")
 
 
 def mean_pose(c2w: np.ndarray) -> np.ndarray:
@@ -76,41 +124,55 @@ def mean_pose(c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def scene_warp(scene) -> "callable | None":
-    """The warp a scene's kind needs (in field space), or None for bounded scenes."""
+def _frustum_points(cams, depths) -> np.ndarray:
+    """Field-space points on each camera's image border (corners and edge midpoints) at the given z-depths."""
+    pts = []
+    for i in range(len(cams)):
+        w, h = float(cams.width[i]), float(cams.height[i])
+        fx, fy, cx, cy = (float(t[i]) for t in (cams.fx, cams.fy, cams.cx, cams.cy))
+        c2w = cams.c2w[i].double().numpy()
+        for z in depths:
+            for u, v in ((0, 0), (w, 0), (0, h), (w, h), (w / 2, 0), (w / 2, h), (0, h / 2), (w, h / 2)):
+                pts.append(c2w[:3, :3] @ np.array([(u - cx) / fx * z, -(v - cy) / fy * z, -z]) + c2w[:3, 3])
+    return np.asarray(pts)
+
+
+def ndc_spec(cams, near: float, far: float) -> dict:
+    """NDC warp for forward-facing training cameras (field space) seeing z-depths [near, far] (field units).
+
+    The reference camera is the mean pose moved back behind every camera; its field of view and near
+    plane are widened so every training frustum from `near` on lies inside the NDC box.
+    """
+    ref = mean_pose(cams.c2w.double().numpy())
+    centres = cams.c2w[:, :3, 3].double().numpy()
+    back = ref[:3, 2]
+    ref[:3, 3] += back * max(0.0, float(((centres - ref[:3, 3]) @ back).max()))
+    depths = near * np.geomspace(1.0, max(far / near, 1.0 + 1e-6), 6)
+    pts = _frustum_points(cams, depths)
+    w2c = np.linalg.inv(ref)
+    p = pts @ w2c[:3, :3].T + w2c[:3, 3]
+    zf = np.maximum(-p[:, 2], 1e-9)
+    ref_near = 0.9 * float(zf.min())
+    ax = 1.0 / (1.05 * float(np.abs(p[:, 0] / zf).max()))
+    ay = 1.0 / (1.05 * float(np.abs(p[:, 1] / zf).max()))
+    extent = max(1.0, NDC_FAR_FACTOR * float(np.abs(pts).max()))
+    spec = NDCWarp(ref, 1.0, 1.0, 2.0, 2.0, ref_near).to_dict()
+    spec.update(ax=ax, ay=ay, extent=extent, cone=CONE)
+    return spec
+
+
+def warp_spec(scene) -> dict | None:
+    """The warp a scene's kind needs (a JSON-able spec for the field config), or None for bounded scenes
+    and for scenes whose dataset gives a box (`aabb`) around all content: the field cube already holds it."""
+    if scene.extra.get("aabb") is not None:
+        return None
     kind = SCENE_WARPS.get(getattr(scene, "kind", "bounded"))
     if kind == "contract":
-        return contract
+        return {"kind": "contract", "extent": CONTRACT_EXTENT, "cone": CONE}
     if kind == "ndc":
         cams = scene.field_cameras("train")
-        ref = mean_pose(cams.c2w.double().numpy())
-        centres = cams.c2w[:, :3, 3].double().numpy()
-        near_world = float(scene.near) if scene.near > 0 else 1.0
-        near = max(near_world * scene.norm.scale, 1e-3)
-        # move the reference camera back behind every camera, so the whole frustum is in front of it
-        back = ref[:3, 2]
-        ref[:3, 3] += back * max(0.0, float(((centres - ref[:3, 3]) @ back).max()))
-        return NDCWarp(ref, float(cams.fx[0]), float(cams.fy[0]), float(cams.width[0]), float(cams.height[0]),
-                       near)
+        s = scene.norm.scale
+        near = max(float(scene.near) * s if scene.near > 0 else 0.05, 1e-3)
+        far = float(scene.far) * s if 0 < scene.far < 1e9 else 4.0
+        return ndc_spec(cams, near, max(far, 2.0 * near))
     return None
-
-
-class WarpedField(torch.nn.Module):
-    """A field evaluated at warped points: the renderer and occupancy grid march in field space,
-    the wrapped field (its hash grid) only ever sees [-1, 1]^3. `bound` is the marching extent."""
-
-    def __init__(self, inner: torch.nn.Module, warp, bound: float):
-        super().__init__()
-        self.inner, self.warp = inner, warp
-        cfg = getattr(inner, "cfg", None)
-        self.cfg = dc_replace(cfg, bound=float(bound)) if cfg is not None and hasattr(cfg, "bound") else cfg
-        self.bound = float(bound)
-
-    def density(self, x: Tensor) -> Tensor:
-        return self.inner.density(self.warp(x))
-
-    def forward(self, x: Tensor, d: Tensor, outputs=("rgb",)) -> dict:
-        return self.inner(self.warp(x), d, outputs=outputs)
-
-    def parameter_groups(self) -> dict:
-        return self.inner.parameter_groups()

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from core.field.activations import density_activation
+from core.field.contraction import make_warp
 from core.field.direction import sh_dim, sh_encode
 from core.field.encoding import HashGridEncoding
 from core.field.hashgrid import GridSpec
@@ -52,6 +53,7 @@ class FieldConfig:
     encoding_impl: str = "auto"  # auto | reference | vectorized | indexed | compiled | native
     compile: bool = True  # $REPAINT_NERF_COMPILE=0 overrides to eager
     bound: float = 1.0  # field cube half-size
+    warp: dict | None = None  # unbounded / forward scenes: a core.field.contraction spec (None: bounded)
 
     def grid_spec(self) -> GridSpec:
         return GridSpec(self.levels, self.features_per_level, self.log2_table, self.base_res, self.finest_res, self.bound)
@@ -90,6 +92,7 @@ class NGPField(nn.Module):
         if cfg.feature_head not in ("separate", "trunk"):
             raise UserError(f"unknown feature head '{cfg.feature_head}'", hint="use 'separate' or 'trunk'")
         self.cfg = cfg
+        self.warp = make_warp(cfg.warp)
         self.grid = HashGridEncoding(cfg.grid_spec(), cfg.encoding_impl, cfg.compile)
         # density trunk: encoding -> hidden -> [density pre-activation, geo features]
         self.trunk = nn.Linear(self.grid.out_dim, cfg.hidden)
@@ -109,11 +112,19 @@ class NGPField(nn.Module):
         """(N,) bool: the point lies in the closed cube [-bound, bound]^3."""
         return (x.abs() <= self.cfg.bound).all(dim=-1)
 
+    def march(self) -> tuple[float, float]:
+        """(extent, cone) for the renderer: rays run inside [-extent, extent]^3 with steps >= cone * distance."""
+        if self.warp is None:
+            return self.cfg.bound, 0.0
+        return float(self.cfg.warp["extent"]), float(self.cfg.warp.get("cone", 0.0))
+
     def _hidden(self, x: Tensor) -> Tensor:
         return F.relu(self.trunk(self.grid(x)))
 
     def density(self, x: Tensor) -> Tensor:
         """(N, 3) field coordinates -> (N,) sigma >= 0, 0 outside the cube. Only the density row of the trunk runs."""
+        if self.warp is not None:
+            x = self.warp(x)
         h = self._hidden(x)
         pre = F.linear(h, self.trunk_out.weight[:1], self.trunk_out.bias[:1])[:, 0]
         return self.act(pre) * self.inside(x).to(pre.dtype)
@@ -125,6 +136,8 @@ class NGPField(nn.Module):
         unknown = set(outputs) - set(OUTPUTS)
         if unknown:
             raise UserError(f"unknown field outputs {sorted(unknown)}", hint=f"ask for any of {OUTPUTS}")
+        if self.warp is not None:
+            x = self.warp(x)
         h = self._hidden(x)
         out_t = self.trunk_out(h)
         result = {"sigma": self.act(out_t[:, 0]) * self.inside(x).to(out_t.dtype)}

@@ -2,6 +2,8 @@
 
 Each cascade c is a resolution^3 grid over the cube [-bound*2^c, bound*2^c]^3 holding a decayed
 maximum of sampled density (`density`) and a boolean `occupied` field derived from it by a threshold.
+For a field with a space warp (unbounded or forward-facing scenes) the grid has one cascade over the
+warped cube [-1, 1]^3: lookups warp their field-space points first, updates unwarp the cell points.
 """
 from __future__ import annotations
 
@@ -16,6 +18,8 @@ from core.device import get_device
 from core.errors import UserError
 
 MIN_OPTICAL_THICKNESS = 0.01  # instant-ngp: a cell is empty when sigma * min_step stays below this
+SEGMENT_SLACK = 1.25  # warped segments bend: the test box reaches 25% past the warped chord
+MAX_SEGMENT_CELLS = 8  # a segment spanning more cells than this is simply marched
 
 
 def default_step(bound: float, max_samples: int) -> float:
@@ -28,13 +32,15 @@ class OccupancyGrid:
 
     def __init__(self, resolution: int = 128, cascades: int = 1, bound: float = 1.0, device=None,
                  min_step: float | None = None, update_every: int = 16, warmup_steps: int = 256,
-                 decay: float = 0.95, eval_chunk: int = 1 << 18):
+                 decay: float = 0.95, eval_chunk: int = 1 << 18, warp=None, march_extent: float | None = None):
         if resolution < 1 or cascades < 1 or bound <= 0:
             raise UserError(f"occupancy grid needs resolution >= 1, cascades >= 1 and bound > 0 "
                             f"(got {resolution}, {cascades}, {bound})")
+        self.warp = warp
         self.resolution = int(resolution)
-        self.cascades = int(cascades)
-        self.bound = float(bound)
+        self.cascades = 1 if warp is not None else int(cascades)
+        self.bound = 1.0 if warp is not None else float(bound)
+        self._march_extent = float(march_extent) if warp is not None and march_extent else None
         self.device = torch.device(device) if device is not None else get_device()
         self.min_step = float(min_step) if min_step else default_step(self.bound, 1024)
         self.update_every = int(update_every)
@@ -55,8 +61,14 @@ class OccupancyGrid:
 
     @property
     def extent(self) -> float:
-        """Half-size of the outermost cascade: rays are marched inside [-extent, extent]^3."""
+        """Rays are marched inside [-extent, extent]^3 (field space): the outermost cascade, or the warp's reach."""
+        if self._march_extent is not None:
+            return self._march_extent
         return self.cascade_extent(self.cascades - 1)
+
+    def to_grid(self, x: Tensor) -> Tensor:
+        """Field-space points (N,3) in the grid's space (warped when the field has a warp)."""
+        return self.warp(x) if self.warp is not None else x
 
     def _cell_index(self, x: Tensor, c: int) -> Tensor:
         """Flat cell index (N,) of points (N,3) in cascade c, clamped to the grid."""
@@ -67,6 +79,9 @@ class OccupancyGrid:
 
     def occupied_bbox(self) -> tuple[Tensor, Tensor]:
         """Axis-aligned box (lo, hi) around all occupied cells (cell bounds); a point when nothing is occupied."""
+        if self.warp is not None:  # a box in warped space is no box in field space
+            e = torch.full((3,), self.extent, device=self.device)
+            return -e, e
         key = (self._version, "bbox")
         if key not in self._dilated:
             r = self.resolution
@@ -96,9 +111,9 @@ class OccupancyGrid:
 
     def is_occupied(self, x: Tensor) -> Tensor:
         """Occupancy of the cell holding each point (N,3) -> (N,) bool; points outside every cascade are empty."""
-        x = x.to(self.device)
+        x = self.to_grid(x.to(self.device))
         c = self.cascade_of(x)
-        inside = (x.abs().amax(dim=-1) <= self.extent)
+        inside = (x.abs().amax(dim=-1) <= self.cascade_extent(self.cascades - 1))
         if self.cascades == 1:
             return self.occupied[0][self._cell_index(x, 0)] & inside
         out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
@@ -123,9 +138,29 @@ class OccupancyGrid:
             self._dilated[key] = g.view(-1) > 0
         return self._dilated[key]
 
+    def occupied_segment(self, a: Tensor, b: Tensor) -> Tensor:
+        """Whether any occupied cell lies near each segment a -> b (N,3 field-space endpoints), for any warp:
+        a box around the warped midpoint reaching past both warped ends (with slack for the warp's bend).
+        Segments spanning more than `MAX_SEGMENT_CELLS` cells count as occupied (conservative)."""
+        ym = self.to_grid(0.5 * (a + b))
+        if self.warp is None:
+            half = 0.5 * (b - a).abs().amax(dim=-1)
+            if self.cascades > 1:
+                return self.occupied_near(ym, float(half.max()) if half.numel() else 0.0)
+        else:
+            ya, yb = self.to_grid(a), self.to_grid(b)
+            half = SEGMENT_SLACK * torch.maximum((ya - ym).abs().amax(-1), (yb - ym).abs().amax(-1))
+        e = self.bound
+        cells = torch.ceil(half * (self.resolution / (2.0 * e)) - 1e-6).clamp_min(0).long()
+        out = cells > MAX_SEGMENT_CELLS
+        for r in cells[~out].unique().tolist():
+            sel = (cells == r).nonzero(as_tuple=True)[0]
+            out[sel] = self.dilated(0, int(r))[self._cell_index(ym[sel], 0)]
+        return out & (ym.abs() <= e + half[:, None]).all(-1)
+
     def occupied_near(self, x: Tensor, half: float) -> Tensor:
         """Whether any occupied cell lies within `half` (per axis) of each point (N,3): a conservative test
-        for a ray segment of half-length `half` centred at x."""
+        for a ray segment of half-length `half` centred at x (unwarped grids)."""
         if self.cascades == 1:
             radius = int(math.ceil(half * self.resolution / (2.0 * self.bound) - 1e-9))
             return self.dilated(0, radius)[self._cell_index(x, 0)]
@@ -160,7 +195,19 @@ class OccupancyGrid:
         ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], dim=-1).float()
         ijk += torch.rand_like(ijk)  # a jittered point inside each cell
         e = self.cascade_extent(c)
-        return ijk * (2.0 * e / r) - e
+        y = ijk * (2.0 * e / r) - e
+        return self.warp.inverse(y) if self.warp is not None else y
+
+    def mark_occupied(self, x: Tensor, level: float | None = None) -> int:
+        """Mark the cells holding field-space points (N,3) occupied, their density raised to at least `level`
+        (default twice the threshold), so new content is marched before the next update sees it.
+        Returns the number of cells marked."""
+        cells = self._cell_index(self.to_grid(x.to(self.device)), 0).unique()
+        lvl = max(2.0 * float(self.threshold()), 1e-3) if level is None else float(level)
+        self.density[0, cells] = torch.clamp_min(self.density[0, cells], lvl)
+        self.occupied[0, cells] = True
+        self._version += 1
+        return int(cells.numel())
 
     @torch.no_grad()
     def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:
@@ -210,3 +257,13 @@ class OccupancyGrid:
         md = state.get("mean_density")
         self.mean_density = float(md.reshape(-1)[0]) if md is not None else float(self.density[0].mean())
         self._version += 1
+
+
+def grid_for_field(field, resolution: int = 128, cascades: int = 1, **kw) -> OccupancyGrid:
+    """The occupancy grid that fits a field: over its cube, or over its warped space when it has a warp."""
+    warp = getattr(field, "warp", None)
+    cfg = getattr(field, "cfg", None)
+    bound = float(getattr(cfg, "bound", 1.0))
+    extent = field.march()[0] if warp is not None else None
+    return OccupancyGrid(resolution=resolution, cascades=cascades, bound=bound, warp=warp, march_extent=extent,
+                         **kw)

@@ -4,10 +4,16 @@ Samples are packed: a flat list sorted by ray, then by distance, with `ray` indi
 two-level: segments of `seg_steps` steps are tested against the occupancy grid dilated by the
 segment's half-length (a conservative test), then only steps of occupied segments are generated and
 each is kept if its own cell is occupied. Empty space therefore costs one test per segment.
+
+Steps are uniform (bounded scenes) or, with a cone angle c > 0 (warped scenes), uniform up to the
+distance step/c and then growing as c * t (instant-ngp's cone stepping), so a ray reaches far
+content in few steps: t_k = t_c (1 + c)^(k - k_c) past the knee k_c.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+import math
 
 import torch
 from torch import Tensor
@@ -23,6 +29,30 @@ class RayPlan:
     t_far: Tensor  # (R,)
     n_steps: Tensor  # (R,) long, 0 for rays that miss
     step: float
+    cone: float = 0.0
+
+    def t_at(self, ray: Tensor, k: Tensor) -> Tensor:
+        """Distance of (fractional) step index k on rays `ray`."""
+        t0 = self.t_near[ray]
+        if self.cone <= 0.0:
+            return t0 + k * self.step
+        return _cone_t(t0, k, self.step, self.cone)
+
+
+def _cone_t(t0: Tensor, k: Tensor, step: float, cone: float) -> Tensor:
+    tc = step / cone
+    kc = ((tc - t0) / step).clamp_min(0.0)
+    grown = torch.maximum(t0, torch.full_like(t0, tc)) * torch.exp((k - kc).clamp_min(0.0) * math.log1p(cone))
+    return torch.where(k <= kc, t0 + k * step, grown)
+
+
+def _cone_steps(t0: Tensor, t1: Tensor, step: float, cone: float) -> Tensor:
+    """Fractional number of cone steps from t0 to t1 (inverse of `_cone_t`)."""
+    tc = step / cone
+    kc = ((tc - t0) / step).clamp_min(0.0)
+    start = torch.maximum(t0, torch.full_like(t0, tc)).clamp_min(1e-12)
+    grown = kc + torch.log(t1.clamp_min(1e-12) / start).clamp_min(0.0) / math.log1p(cone)
+    return torch.where(t1 <= start, (t1 - t0) / step, grown)
 
 
 @dataclass
@@ -59,14 +89,20 @@ def cube(extent: float, device=None) -> tuple[Tensor, Tensor]:
 
 
 def plan_rays(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor, step: float, max_samples: int,
-              near: float = 0.0) -> RayPlan:
+              near: float = 0.0, cone: float = 0.0) -> RayPlan:
     """Clip rays to the box (starting no earlier than `near`) and count their steps (at most max_samples)."""
     t_min, t_max = intersect_box(origins, dirs, lo.to(origins), hi.to(origins))
     t_near = t_min.clamp_min(near)
-    length = (t_max - t_near).clamp_min(0.0)
-    n = torch.ceil(length / step).clamp(0, max_samples).long()
-    t_far = torch.minimum(t_max, t_near + n * step)
-    return RayPlan(t_near, t_far, n, step)
+    if cone > 0.0:  # the slack keeps float error from adding a sliver step at the box face
+        steps = _cone_steps(t_near, torch.maximum(t_max, t_near), step, cone) - 1e-6
+    else:
+        steps = (t_max - t_near).clamp_min(0.0) / step
+    n = torch.ceil(steps).clamp(0, max_samples).long()
+    if cone > 0.0:
+        t_far = torch.minimum(t_max, _cone_t(t_near, n.to(t_near.dtype), step, cone))
+    else:
+        t_far = torch.minimum(t_max, t_near + n * step)
+    return RayPlan(t_near, t_far, n, step, cone)
 
 
 def next_segments(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: OccupancyGrid | None, ids: Tensor,
@@ -80,9 +116,17 @@ def next_segments(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: OccupancyG
     occ = first < n[:, None]
     if grid is not None:
         count = (n[:, None] - first).clamp(0, seg_steps)
-        t_mid = plan.t_near[ids][:, None] + (first + 0.5 * count) * plan.step
-        pts = origins[ids][:, None, :] + t_mid[..., None] * dirs[ids][:, None, :]
-        occ &= grid.occupied_near(pts.reshape(-1, 3), 0.5 * seg_steps * plan.step).view(occ.shape)
+        o, d = origins[ids][:, None, :], dirs[ids][:, None, :]
+        if plan.cone <= 0.0 and grid.warp is None:
+            t_mid = plan.t_near[ids][:, None] + (first + 0.5 * count) * plan.step
+            pts = o + t_mid[..., None] * d
+            occ &= grid.occupied_near(pts.reshape(-1, 3), 0.5 * seg_steps * plan.step).view(occ.shape)
+        else:
+            rays = ids[:, None].expand_as(first)
+            ta = plan.t_at(rays, first.to(o.dtype))
+            tb = plan.t_at(rays, (first + count).to(o.dtype))
+            a, b = (o + ta[..., None] * d).reshape(-1, 3), (o + tb[..., None] * d).reshape(-1, 3)
+            occ &= grid.occupied_segment(a, b).view(occ.shape)
     rank = torch.cumsum(occ.int(), 1)
     chosen = occ & (rank <= take)
     full = rank[:, -1] >= take
@@ -105,8 +149,13 @@ def expand_segments(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: Occupanc
     seg_start = torch.cumsum(seg_count, 0) - seg_count
     k = seg_first[seg_of] + (torch.arange(total, device=dev) - seg_start[seg_of])
     ray = seg_ray[seg_of]
-    t_start = plan.t_near[ray] + k * plan.step
-    t_end = torch.minimum(t_start + plan.step, plan.t_far[ray])
+    if plan.cone <= 0.0:
+        t_start = plan.t_near[ray] + k * plan.step
+        t_end = torch.minimum(t_start + plan.step, plan.t_far[ray])
+    else:
+        kf = k.to(origins.dtype)
+        t_start = plan.t_at(ray, kf)
+        t_end = torch.minimum(plan.t_at(ray, kf + 1.0), plan.t_far[ray])
     frac = torch.rand_like(t_start) if perturb else torch.full_like(t_start, 0.5)
     t = t_start + frac * (t_end - t_start)
     x = origins[ray] + t[:, None] * dirs[ray]

@@ -70,6 +70,10 @@ class _Timer:
             self.acc.time[self.key] += time.perf_counter() - self.t0
 
 
+WARPED_CAP_FACTOR = 4  # per-ray step cap of warped fields, in units of max_samples
+CONE_KNEE = 1.0  # field units: cone stepping grows steps from here on at the latest
+
+
 def _check(opts: RenderOptions) -> None:
     bad = [o for o in opts.outputs if o not in OUTPUTS]
     if bad:
@@ -86,6 +90,16 @@ def _check(opts: RenderOptions) -> None:
 def _field_bound(field) -> float:
     cfg = getattr(field, "cfg", None)
     return float(getattr(cfg, "bound", getattr(field, "bound", 1.0)))
+
+
+def _march_params(field, grid: OccupancyGrid | None) -> tuple[float, float, float]:
+    """(bound, extent, cone): the cube whose diagonal sets the step, the marching box, the step growth.
+    A warped field (core.field.contraction) marches past its unit cube with cone steps."""
+    bound = grid.bound if grid is not None else _field_bound(field)
+    extent, cone = field.march() if hasattr(field, "march") else (bound, 0.0)
+    if grid is not None:
+        extent = grid.extent
+    return bound, extent, cone
 
 
 def _needs_grad(field) -> bool:
@@ -190,9 +204,12 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
     heads = tuple(h for h in ("rgb", "feature") if h in opts.outputs)
     need = set(opts.outputs) | ({"opacity"} if {"rgb", "depth"} & set(opts.outputs) else set())
     strategy = "filter" if opts.strategy == "filter" or _needs_grad(field) else "rounds"
-    bound = grid.bound if grid is not None else _field_bound(field)
-    extent = grid.extent if grid is not None else bound
+    bound, extent, cone = _march_params(field, grid)
     step = opts.step_size or default_step(bound, opts.max_samples)
+    if cone > 0.0:  # steps start growing no farther than one field unit out (coarse steps: sooner)
+        cone = max(cone, step / CONE_KNEE)
+    # warped fields reach far content with growing steps; the cap leaves room for them past the unit cube
+    cap = opts.max_samples if cone <= 0.0 else WARPED_CAP_FACTOR * opts.max_samples
     acc = _Acc()
     acc.stats["rays"] = n_rays
 
@@ -205,9 +222,9 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
     for b0 in range(0, n_rays, block):
         o, d = origins[b0:b0 + block], dirs[b0:b0 + block]
         with _Timer(acc, "sampling", opts.profile, dev):
-            plan = plan_rays(o, d, lo, hi, step, opts.max_samples, opts.near)
-        acc.stats["marched"] += int(plan_rays(o, d, *cube(extent, dev), step, opts.max_samples,
-                                              opts.near).n_steps.sum())
+            plan = plan_rays(o, d, lo, hi, step, cap, opts.near, cone)
+        acc.stats["marched"] += int(plan_rays(o, d, *cube(extent, dev), step, cap, opts.near,
+                                              cone).n_steps.sum())
         out = _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, cancel)
         if out is None:
             return None

@@ -178,12 +178,7 @@ def mark_region_occupied(grid, region: Tensor, bound: float) -> int:
     idx = region.reshape(-1).nonzero(as_tuple=True)[0]
     ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], -1).float()
     pts = (ijk + 0.5) * (2 * bound / r) - bound
-    cells = grid._cell_index(pts.to(grid.device), 0).unique()
-    level = max(2.0 * float(grid.threshold()), 1e-3)
-    grid.density[0, cells] = torch.clamp_min(grid.density[0, cells], level)
-    grid.occupied[0, cells] = True
-    grid._version += 1
-    return int(cells.numel())
+    return grid.mark_occupied(pts)
 
 
 # --- guidances with image targets ----------------------------------------------------------------

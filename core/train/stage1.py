@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from core.device import get_device, synchronize
-from core.render.occupancy import OccupancyGrid
+from core.render.occupancy import grid_for_field
 from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.train import losses
 from core.train.adan import grads_finite
@@ -57,6 +57,7 @@ class TrainConfig:
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
+    scene_warp: bool = True  # forward / unbounded scenes: NDC / contraction (core.field.contraction)
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
 
@@ -69,20 +70,27 @@ class TrainConfig:
         return TrainConfig(**kw)
 
 
-def make_field(field_cfg=None, device: torch.device | None = None, image_size: int | None = None):
-    """The field for a config (the field package's default for this device when None)."""
+def default_config(device: torch.device | None = None, image_size: int | None = None):
+    """The field package's default config for this device and image size."""
     from core.field import field as fieldmod
 
-    if field_cfg is None:
-        maker = getattr(fieldmod, "default_field_config", None)
-        if maker is not None:
-            try:
-                field_cfg = maker(device, image_size)
-            except TypeError:
-                field_cfg = maker()
-        else:
-            field_cfg = fieldmod.FieldConfig()
+    return fieldmod.default_field_config(device, image_size or 800)
+
+
+def make_field(field_cfg=None, device: torch.device | None = None, image_size: int | None = None):
+    """The field for a config (the default for this device when None)."""
+    from core.field import field as fieldmod
+
+    field_cfg = field_cfg if field_cfg is not None else default_config(device, image_size)
     return fieldmod.NGPField(field_cfg).to(device), field_cfg
+
+
+def warped_config(scene, device: torch.device | None, image_size: int):
+    """The default field config with the space warp the scene's kind needs; None for bounded scenes."""
+    from core.field.contraction import warp_spec
+
+    spec = warp_spec(scene)
+    return None if spec is None else dataclasses.replace(default_config(device, image_size), warp=spec)
 
 
 def sample_budget(image_side: int) -> int:
@@ -161,6 +169,8 @@ class Stage1Trainer:
             self.cfg = dataclasses.replace(self.cfg, max_samples=sample_budget(int(max(ws.max(), hs.max()))))
 
         self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
+        if field_cfg is None and self.cfg.scene_warp:
+            field_cfg = warped_config(scene, self.device, int(max(ws.max(), hs.max())))
         if self.features is not None and field_cfg is not None and getattr(field_cfg, "feature_dim", 0) != self.feature_dim:
             field_cfg = dataclasses.replace(field_cfg, feature_dim=self.feature_dim)
         self.field, self.field_cfg = make_field(field_cfg, self.device, int(max(ws.max(), hs.max())))
@@ -170,9 +180,8 @@ class Stage1Trainer:
         self.depth, self.depth_pixels = (self._prepare_depth(depth_priors) if depth_priors is not None
                                          else (None, None))
 
-        self.grid = OccupancyGrid(resolution=self.cfg.grid_resolution, cascades=self.cfg.grid_cascades,
-                                  bound=float(getattr(self.field_cfg, "bound", 1.0)), device=self.device,
-                                  update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps)
+        self.grid = grid_for_field(self.field, self.cfg.grid_resolution, self.cfg.grid_cascades, device=self.device,
+                                   update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps)
         self.optimizer = self._make_optimizer()
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
@@ -572,7 +581,7 @@ def restore_field(ckpt: Checkpoint, device: torch.device | str | None = None):
     fld, _ = make_field(cfg, device)
     fld.load_state_dict({k: v.to(device) for k, v in ckpt.section("field").items()})
     g = ckpt.header["grid"]
-    grid = OccupancyGrid(resolution=g["resolution"], cascades=g["cascades"], bound=g["bound"], device=device)
+    grid = grid_for_field(fld, g["resolution"], g["cascades"], device=device)
     grid.load_state_dict({**{k: v.to(device) for k, v in ckpt.section("grid").items()}, **g.get("state", {})})
     fld.eval()
     return fld, grid, ckpt.header

@@ -25,7 +25,7 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
     root = Path(root)
     if not (root / "transforms_train.json").is_file():
         raise SceneError("transforms_train.json not found (a NeRF-synthetic scene needs its train split)", root)
-    out, background, aabb, kind, depth_range = {}, None, None, "bounded", None
+    out, background, aabb, kind, depth_range = {}, None, None, None, None
     for split in SPLITS:
         path = root / f"transforms_{split}.json"
         if not path.is_file():
@@ -44,7 +44,9 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         extra["aabb"] = aabb
     has_alpha = any(im.shape[2] == 4 for sp in out.values() for im in sp.images[:1])
     extra["alpha"] = bool(has_alpha)
-    scene = Scene(root=root, format="blender", splits=out, background=background, kind=kind, extra=extra)
+    extra["kind_given"] = kind is not None
+    scene = Scene(root=root, format="blender", splits=out, background=background, kind=kind or "bounded",
+                  extra=extra)
     if depth_range is not None:
         extra["depth_range"] = depth_range
         if kind == "forward":

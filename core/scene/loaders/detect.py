@@ -17,6 +17,7 @@ from core.scene.loaders.common import check_downscale
 from core.scene.loaders.images import list_images
 from core.scene.loaders.llff import load_llff
 from core.scene.loaders.nerfstudio import load_nerfstudio
+from core.scene.kinds import choose_kind
 from core.scene.normalize import normalize_scene
 from core.scene.scene import SCENE_KINDS, Scene
 
@@ -87,8 +88,9 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
                workspace: str | Path | None = None) -> Scene:
     """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
 
-    `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind
-    ('forward' for LLFF, 'bounded' otherwise); `splits` restricts which splits' images are read;
+    `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind, which
+    is otherwise the dataset's (LLFF: forward; a transforms JSON's `scene_kind`) or detected from the
+    camera layout (`core.scene.kinds`); `splits` restricts which splits' images are read;
     `workspace` is where structure-from-motion on a photo folder caches its result.
     """
     downscale = check_downscale(downscale)
@@ -102,6 +104,20 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
         raise SceneError(f"no images loaded (requested splits: {', '.join(splits or ('all',))})", root)
     if kind is not None:
         scene.kind = kind
+    elif fmt in ("blender", "nerfstudio", "colmap") and not scene.extra.get("kind_given"):
+        choose_kind(scene)
     scene.extra.setdefault("downscale", downscale)
     normalize_scene(scene)
     return scene
+
+
+def load_workspace_scene(settings: dict, header: dict | None = None, workspace: str | Path | None = None) -> Scene:
+    """The scene a workspace was trained on, loaded as it was then: its path, downscale and scene kind
+    (from the checkpoint header when there is one, else the workspace settings)."""
+    facts = (header or {}).get("scene") or {}
+    root = settings.get("scene") or facts.get("root")
+    if not root:
+        raise UserError("the workspace does not say which scene it holds",
+                        hint="train it first: repaint-nerf train SCENE --workspace WS")
+    kind = facts.get("kind") or settings.get("kind")
+    return load_scene(Path(root), float(settings.get("downscale", 1.0)), kind=kind, workspace=workspace)

@@ -30,6 +30,9 @@ def scene_summary(scene: Scene) -> dict:
         "path": str(scene.root),
         "format": scene.format,
         "kind": scene.kind,
+        "kind_reason": scene.extra.get("kind_reason", "given by the dataset or --kind"),
+        "warp": "none (an aabb bounds the content)" if scene.extra.get("aabb") is not None or scene.kind == "bounded"
+        else {"forward": "NDC of a reference camera", "unbounded": "mip-NeRF 360 contraction"}[scene.kind],
         "downscale": float(scene.extra.get("downscale", 1.0)),
         "splits": splits,
         "intrinsics": {"fx": float(first.fx[0]), "fy": float(first.fy[0]), "cx": float(first.cx[0]),
@@ -52,7 +55,8 @@ def format_summary(info: dict) -> str:
     """The summary as aligned human-readable lines."""
     f = lambda v: f"{v:.6g}"  # noqa: E731
     lines = [f"path            {info['path']}", f"format          {info['format']}",
-             f"kind            {info['kind']}"]
+             f"kind            {info['kind']} ({info['kind_reason']})",
+             f"space warp      {info['warp']}"]
     if info["downscale"] != 1.0:
         lines.append(f"downscale       {f(info['downscale'])}")
     for name, sp in info["splits"].items():

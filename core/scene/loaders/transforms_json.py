@@ -211,11 +211,13 @@ def parse_aabb(meta: dict, path: Path):
     return box
 
 
-def parse_kind(meta: dict, path: Path) -> str:
-    """The optional `scene_kind` ('bounded', 'forward', 'unbounded'); 'bounded' when absent."""
+def parse_kind(meta: dict, path: Path) -> str | None:
+    """The optional `scene_kind` ('bounded', 'forward', 'unbounded'); None when absent (detected at load)."""
     from core.scene.scene import SCENE_KINDS
 
-    kind = meta.get("scene_kind", "bounded")
+    kind = meta.get("scene_kind")
+    if kind is None:
+        return None
     if kind not in SCENE_KINDS:
         raise SceneError(f"'scene_kind' must be one of {', '.join(SCENE_KINDS)}, got {kind!r}", path)
     return kind
