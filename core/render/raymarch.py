@@ -11,9 +11,8 @@ content in few steps: t_k = t_c (1 + c)^(k - k_c) past the knee k_c.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -95,12 +94,10 @@ def plan_rays(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor, step: float
     t_near = t_min.clamp_min(near)
     if cone > 0.0:  # the slack keeps float error from adding a sliver step at the box face
         steps = _cone_steps(t_near, torch.maximum(t_max, t_near), step, cone) - 1e-6
-    else:
-        steps = (t_max - t_near).clamp_min(0.0) / step
-    n = torch.ceil(steps).clamp(0, max_samples).long()
-    if cone > 0.0:
+        n = torch.ceil(steps).clamp(0, max_samples).long()
         t_far = torch.minimum(t_max, _cone_t(t_near, n.to(t_near.dtype), step, cone))
     else:
+        n = torch.ceil((t_max - t_near).clamp_min(0.0) / step).clamp(0, max_samples).long()
         t_far = torch.minimum(t_max, t_near + n * step)
     return RayPlan(t_near, t_far, n, step, cone)
 
