@@ -21,6 +21,9 @@ from app.resolution import DynamicResolution
 from core.errors import UserError
 
 
+PREVIEW_TRAIN_RATIO = 3.0  # seconds of training per second of preview rendering, at least
+
+
 @dataclass
 class RenderRequest:
     """Render the view `cameras` (one camera at full viewport resolution); `key` identifies the view."""
@@ -88,6 +91,7 @@ class Worker:
         self._serial = 0
         self._served: tuple[int, float] = (-1, 0.0)  # (serial, best scale) already delivered
         self._last_preview = 0.0
+        self._last_render_s = 0.0
         self._preview_due = False
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -184,6 +188,7 @@ class Worker:
         self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
         data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=self._stale(req.serial))
         ms = (time.perf_counter() - t0) * 1000.0
+        self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request
             self._served = (-1, 0.0)
             return True
@@ -210,7 +215,9 @@ class Worker:
         if info is not None:
             self.results.put(Status(dict(info)))
         now = time.perf_counter()
-        if now - self._last_preview >= self.preview_interval_s:
+        # A sharp preview of a resting view can take seconds on a CPU: space them so training keeps
+        # at least PREVIEW_TRAIN_RATIO / (1 + PREVIEW_TRAIN_RATIO) of the worker's time.
+        if now - self._last_preview >= max(self.preview_interval_s, PREVIEW_TRAIN_RATIO * self._last_render_s):
             self._last_preview = now
             self._preview_due = True  # show the model as it trains
         return True
