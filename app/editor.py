@@ -46,7 +46,11 @@ class EditorApp:
         self.image_origin = (0.0, 0.0)
         self.requested_key: tuple | None = None
         self.max_fps = float(os.environ.get("REPAINT_NERF_MAX_FPS", "30"))
+        self.idle_fps = float(os.environ.get("REPAINT_NERF_IDLE_FPS", "4"))
         self._frame_started = 0.0
+        self._active = True  # the last frame saw input, a result or a new render request
+        self.frame_work_ms = 0.0  # the last frame's own time, without the pacing wait before it
+        self.worker.notify = window.wake
         self.shown_key: tuple | None = None
         self.frames_shown = 0
         self.last_frame: Frame | None = None
@@ -280,14 +284,21 @@ class EditorApp:
 
         Frames are paced to at most `max_fps`: without a GPU (or vsync, as under Xvfb) an unpaced loop
         spends both cores drawing the same picture and the training worker got 0.7 steps/s instead of 5.6.
+        An idle UI (no input, no new result) draws at `idle_fps`, woken at once by input or the worker.
         """
-        wait = self._frame_started + 1.0 / self.max_fps - time.perf_counter()
+        idle = not (self._active or self.window.has_pending_input())
+        wait = self._frame_started + 1.0 / (self.idle_fps if idle else self.max_fps) - time.perf_counter()
         if wait > 0:
-            time.sleep(wait)
+            self.window.wait_events(wait) if idle else time.sleep(wait)
         self._frame_started = time.perf_counter()
         self.window.begin_frame()
-        for msg in self.worker.poll():
+        msgs = self.worker.poll()
+        for msg in msgs:
             self._handle(msg)
+        io = imgui.get_io()
+        self._active = (any(not isinstance(m, Status) for m in msgs) or imgui.is_any_mouse_down()
+                        or io.mouse_delta.x != 0 or io.mouse_delta.y != 0 or io.mouse_wheel != 0
+                        or imgui.is_any_item_active() or self.drag_start is not None)
         w, h = self.window.framebuffer_size()
         panel_w = min(PANEL_WIDTH, max(w // 3, 200))
         self._draw_viewport(w - panel_w, h)
@@ -299,9 +310,12 @@ class EditorApp:
             key = (self.camera.state(), self.view_size, outputs)
             if key != self.requested_key:
                 self.requested_key = key
+                self._active = True
                 self.events.append((time.perf_counter(), "request", key))
                 self.worker.request_render(self.camera.cameras(*self.view_size), key, outputs)
-        return self.window.end_frame(capture=capture)
+        shot = self.window.end_frame(capture=capture)
+        self.frame_work_ms = (time.perf_counter() - self._frame_started) * 1000.0
+        return shot
 
     def close(self) -> None:
         self.worker.stop()

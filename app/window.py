@@ -67,6 +67,18 @@ class Window:
     def framebuffer_size(self) -> tuple[int, int]:
         return glfw.get_framebuffer_size(self.handle)
 
+    def wait_events(self, timeout: float) -> None:
+        """Sleep until an input event or `wake()`, at most `timeout` seconds (an idle UI costs no CPU)."""
+        glfw.wait_events_timeout(timeout)
+
+    def wake(self) -> None:
+        """Wake a `wait_events` from another thread."""
+        glfw.post_empty_event()
+
+    def has_pending_input(self) -> bool:
+        """Scripted input (tests) is queued for the next frames."""
+        return bool(self._injectors)
+
     def begin_frame(self) -> None:
         glfw.poll_events()
         imgui.backends.opengl3_new_frame()

@@ -96,6 +96,7 @@ class Worker:
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.projector = FeatureProjector()
+        self.notify: Callable[[], None] | None = None  # wakes the UI for a frame, reply or crash (thread-safe)
         self.thread = threading.Thread(target=self._run, name="repaint-nerf-worker", daemon=True)
 
     # ---- UI side
@@ -143,6 +144,11 @@ class Worker:
                 return out
 
     # ---- worker side
+    def _publish(self, msg: Any) -> None:
+        self.results.put(msg)
+        if self.notify is not None and not isinstance(msg, Status):  # status alone can wait for the next frame
+            self.notify()
+
     def _stale(self, serial: int) -> Callable[[], bool]:
         # A queued command (a patch to select, an undo) also interrupts a render: it is served first.
         return lambda: (self._stop.is_set() or self._latest is None or self._latest.serial != serial
@@ -156,12 +162,12 @@ class Worker:
                 return
             try:
                 value = getattr(self.engine, name)(*args, **kwargs)
-                self.results.put(Reply(name, value, None, tag))
+                self._publish(Reply(name, value, None, tag))
             except UserError as exc:
-                self.results.put(Reply(name, None, str(exc), tag))
+                self._publish(Reply(name, None, str(exc), tag))
             except Exception:  # a bug: report it, keep the worker alive
-                self.results.put(Reply(name, None, traceback.format_exc(limit=8), tag))
-                self.results.put(Crashed(f"command {name}", traceback.format_exc()))
+                self._publish(Reply(name, None, traceback.format_exc(limit=8), tag))
+                self._publish(Crashed(f"command {name}", traceback.format_exc()))
 
     def _next_scale(self, req: RenderRequest) -> float | None:
         """Scale to render `req` at now, or None when it has been delivered at full quality."""
@@ -200,7 +206,7 @@ class Worker:
         if data.pop("capped", False):  # the engine's finest for this view: no further refinement
             scale = 1.0
         self._served = (req.serial, scale)
-        self.results.put(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
+        self._publish(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
         return True
 
     def _camera_moving(self) -> bool:
@@ -213,7 +219,7 @@ class Worker:
             return False
         info = self.engine.train_for(self.train_budget_s)
         if info is not None:
-            self.results.put(Status(dict(info)))
+            self._publish(Status(dict(info)))
         now = time.perf_counter()
         # A sharp preview of a resting view can take seconds on a CPU: space them so training keeps
         # at least PREVIEW_TRAIN_RATIO / (1 + PREVIEW_TRAIN_RATIO) of the worker's time.
@@ -232,10 +238,10 @@ class Worker:
                     busy = bool(step()) or busy
                 except UserError as exc:
                     self.training = False
-                    self.results.put(Crashed(where, str(exc)))
+                    self._publish(Crashed(where, str(exc)))
                 except Exception:
                     self.training = False  # do not repeat a failing step every loop
-                    self.results.put(Crashed(where, traceback.format_exc()))
+                    self._publish(Crashed(where, traceback.format_exc()))
                 if where == "render" and busy:
                     break  # newest render first: look for commands and newer requests before training
             if not busy:

@@ -326,3 +326,24 @@ def test_worker_crash_is_shown_and_ui_stays_usable(editor):
     editor.state.error = None
     editor.camera.orbit(-40, 0)
     run_until(editor, lambda: full_frame(editor))
+
+
+def test_an_idle_editor_sleeps_and_a_result_wakes_it(editor):
+    """At rest, with no input and no result, frames come at idle_fps (the CPU goes to training); a worker
+    reply wakes the waiting UI at once instead of after the idle period."""
+    editor.worker.set_training(False)  # training publishes previews, which (rightly) wake the UI
+    run_until(editor, lambda: full_frame(editor))
+    time.sleep(0.3)
+    frames(editor, 3)  # settle: no input, nothing new
+    assert not editor._active
+    editor.idle_fps = 1.0
+    t0 = time.perf_counter()
+    editor.frame()
+    assert time.perf_counter() - t0 > 0.5  # waited for events (1 s budget), nothing came
+    editor.frame()
+    editor.call("clear_selection")  # a reply is on its way: the worker wakes the waiting UI
+    t0 = time.perf_counter()
+    editor.frame()
+    assert time.perf_counter() - t0 < 0.5
+    editor.idle_fps = 4.0
+    editor.worker.set_training(True)
