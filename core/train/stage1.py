@@ -53,7 +53,7 @@ class TrainConfig:
     perturb: bool = True
     t_threshold: float = 1e-4
     max_samples: int = 0  # steps across the cube's diagonal; 0 = auto (see sample_budget)
-    grid_resolution: int = 128
+    grid_resolution: int = 0  # occupancy cells per axis; 0 = auto (see grid_resolution_for)
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
@@ -91,6 +91,13 @@ def warped_config(scene, device: torch.device | None, image_size: int):
 
     spec = warp_spec(scene)
     return None if spec is None else dataclasses.replace(default_config(device, image_size), warp=spec)
+
+
+def grid_resolution_for(device: torch.device) -> int:
+    """Occupancy grid resolution: instant-ngp's 128 on CUDA; 64 on a CPU, where every update sweep and
+    dilation costs 8x less. Measured on the 128-px demo (4096 rays, 2-core CPU, test PSNR at 60/90/120/150 s):
+    128 cells 17.3/19.8/21.5/23.0 dB (304 steps), 64 cells 20.2/23.2/26.6/28.9 dB (648 steps)."""
+    return 128 if device.type == "cuda" else 64
 
 
 def sample_budget(image_side: int) -> int:
@@ -167,6 +174,8 @@ class Stage1Trainer:
         self.cameras = scene.field_cameras("train").to(self.device)
         if self.cfg.max_samples <= 0:
             self.cfg = dataclasses.replace(self.cfg, max_samples=sample_budget(int(max(ws.max(), hs.max()))))
+        if self.cfg.grid_resolution <= 0:
+            self.cfg = dataclasses.replace(self.cfg, grid_resolution=grid_resolution_for(self.device))
 
         self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
         if field_cfg is None and self.cfg.scene_warp:
