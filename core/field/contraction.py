@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from core.scene.normalize import frustum_points
+
 SCENE_WARPS = {"bounded": None, "unbounded": "contract", "forward": "ndc"}
 CONE = 1.0 / 256.0  # instant-ngp's cone angle for large scenes: a step is at least t/256
 CONTRACT_EXTENT = 16.0  # rays stop where the contraction has covered 97% of its range
@@ -49,9 +51,6 @@ def uncontract(y: Tensor, norm: str = "inf") -> Tensor:
 class ContractWarp:
     """Unbounded scenes: field-space points -> the halved L-inf contraction in [-1, 1]^3."""
 
-    def __init__(self, spec: dict):
-        self.spec = dict(spec)
-
     def __call__(self, x: Tensor) -> Tensor:
         return contract(x, "inf")
 
@@ -69,7 +68,6 @@ class NDCWarp:
     def __init__(self, ref_c2w: np.ndarray | Tensor | None = None, fx: float = 1.0, fy: float = 1.0,
                  width: float = 2.0, height: float = 2.0, near: float = 1.0, spec: dict | None = None):
         if spec is not None:
-            self.spec = dict(spec)
             self.w2c = torch.tensor(spec["w2c"], dtype=torch.float32)
             self.ax, self.ay, self.near = float(spec["ax"]), float(spec["ay"]), float(spec["near"])
             return
@@ -77,7 +75,6 @@ class NDCWarp:
         self.w2c = torch.linalg.inv(c2w).float()
         self.ax, self.ay = float(2.0 * fx / width), float(2.0 * fy / height)
         self.near = float(near)
-        self.spec = self.to_dict()
 
     def __call__(self, x: Tensor) -> Tensor:
         w2c = self.w2c.to(x.device, x.dtype)
@@ -104,7 +101,7 @@ def make_warp(spec: dict | None):
     from core.errors import UserError
 
     if spec.get("kind") == "contract":
-        return ContractWarp(spec)
+        return ContractWarp()
     if spec.get("kind") == "ndc":
         return NDCWarp(spec=spec)
     raise UserError(f"unknown space warp {spec.get('kind')!r} in the field config",
@@ -124,19 +121,6 @@ def mean_pose(c2w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _frustum_points(cams, depths) -> np.ndarray:
-    """Field-space points on each camera's image border (corners and edge midpoints) at the given z-depths."""
-    pts = []
-    for i in range(len(cams)):
-        w, h = float(cams.width[i]), float(cams.height[i])
-        fx, fy, cx, cy = (float(t[i]) for t in (cams.fx, cams.fy, cams.cx, cams.cy))
-        c2w = cams.c2w[i].double().numpy()
-        for z in depths:
-            for u, v in ((0, 0), (w, 0), (0, h), (w, h), (w / 2, 0), (w / 2, h), (0, h / 2), (w, h / 2)):
-                pts.append(c2w[:3, :3] @ np.array([(u - cx) / fx * z, -(v - cy) / fy * z, -z]) + c2w[:3, 3])
-    return np.asarray(pts)
-
-
 def ndc_spec(cams, near: float, far: float) -> dict:
     """NDC warp for forward-facing training cameras (field space) seeing z-depths [near, far] (field units).
 
@@ -148,7 +132,7 @@ def ndc_spec(cams, near: float, far: float) -> dict:
     back = ref[:3, 2]
     ref[:3, 3] += back * max(0.0, float(((centres - ref[:3, 3]) @ back).max()))
     depths = near * np.geomspace(1.0, max(far / near, 1.0 + 1e-6), 6)
-    pts = _frustum_points(cams, depths)
+    pts = frustum_points(cams, depths, edges=True)
     w2c = np.linalg.inv(ref)
     p = pts @ w2c[:3, :3].T + w2c[:3, 3]
     zf = np.maximum(-p[:, 2], 1e-9)

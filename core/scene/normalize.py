@@ -55,18 +55,23 @@ def _half_fov(cams: Cameras) -> np.ndarray:
     return np.minimum(np.arctan(w / (2 * fx)), np.arctan(h / (2 * fy)))
 
 
-def frustum_box(cams: Cameras, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding box of the camera frusta between z-depths `near` and `far` (world units)."""
+def frustum_points(cams: Cameras, depths, edges: bool = False) -> np.ndarray:
+    """World points on each camera's image corners (and edge midpoints with `edges`) at the given z-depths."""
     pts = []
     for i in range(len(cams)):
         w, h = float(cams.width[i]), float(cams.height[i])
         fx, fy, cx, cy = (float(t[i]) for t in (cams.fx, cams.fy, cams.cx, cams.cy))
         c2w = cams.c2w[i].double().numpy()
-        for z in (near, far):
-            for u, v in ((0, 0), (w, 0), (0, h), (w, h)):
-                p = np.array([(u - cx) / fx * z, -(v - cy) / fy * z, -z])
-                pts.append(c2w[:3, :3] @ p + c2w[:3, 3])
-    pts = np.asarray(pts)
+        border = [(0, 0), (w, 0), (0, h), (w, h)] + ([(w / 2, 0), (w / 2, h), (0, h / 2), (w, h / 2)] if edges else [])
+        for z in depths:
+            for u, v in border:
+                pts.append(c2w[:3, :3] @ np.array([(u - cx) / fx * z, -(v - cy) / fy * z, -z]) + c2w[:3, 3])
+    return np.asarray(pts)
+
+
+def frustum_box(cams: Cameras, near: float, far: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding box of the camera frusta between z-depths `near` and `far` (world units)."""
+    pts = frustum_points(cams, (near, far))
     return pts.min(0), pts.max(0)
 
 
