@@ -101,7 +101,7 @@ def test_compile_switch_by_env(monkeypatch):
 
 def test_native_kernel_is_built_and_auto_uses_it_on_cpu():
     spec = SPECS[0]
-    assert hashgrid_native.native_available(), hashgrid_native._failed  # CI has a C compiler: the fast path runs
+    assert hashgrid_native.native_available(), hashgrid_native.LIBRARY.failed  # CI has a C compiler: the fast path runs
     x, table = _points(3000, spec.bound, seed=5), _table(spec)
     assert hashgrid_native.usable(x, table, spec)
     auto = encoder_fn("auto", compile=False)
@@ -112,15 +112,15 @@ def test_native_kernel_is_built_and_auto_uses_it_on_cpu():
 
 
 def test_native_build_failure_falls_back_with_warning(monkeypatch, tmp_path):
-    monkeypatch.setattr(hashgrid_native, "_lib", None)
-    monkeypatch.setattr(hashgrid_native, "_failed", None)
+    monkeypatch.setattr(hashgrid_native.LIBRARY, "lib", None)
+    monkeypatch.setattr(hashgrid_native.LIBRARY, "failed", None)
     monkeypatch.setenv("REPAINT_NERF_CACHE", str(tmp_path))  # nothing built there yet
     monkeypatch.setenv("CC", "/bin/false")  # a compiler that always fails
     spec = SPECS[0]
     x, table = _points(200, spec.bound), _table(spec)
     with pytest.warns(RuntimeWarning, match="native hash-grid kernel unavailable"):
         out = encode_native(x, table, spec)
-    assert hashgrid_native._failed and not hashgrid_native.native_available()
+    assert hashgrid_native.LIBRARY.failed and not hashgrid_native.native_available()
     torch.testing.assert_close(out, encode_reference(x, table, spec), atol=ATOL, rtol=RTOL)
     assert not list(tmp_path.rglob("*.so"))  # no half-built library left behind
 

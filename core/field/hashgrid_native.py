@@ -8,57 +8,13 @@ eager path with a warning when no compiler is available. CUDA tensors never come
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import platform
-import shutil
-import subprocess
-import tempfile
-import threading
-import warnings
 from pathlib import Path
 
 import torch
 
 from core.field.hashgrid import GridSpec
 from core.field.hashgrid_fast import encode_vectorized
-
-ENV_NATIVE = "REPAINT_NERF_NATIVE"  # 0 disables the kernel
-SOURCE = Path(__file__).with_name("csrc") / "hashgrid.c"
-FLAGS = ["-O3", "-fPIC", "-shared", "-fopenmp", "-fno-fast-math", "-ffp-contract=off"]
-
-_lock = threading.Lock()
-_lib: ctypes.CDLL | None = None
-_failed: str | None = None
-
-
-def cache_dir() -> Path:
-    """Where built kernels live: $REPAINT_NERF_CACHE/native, else ~/.cache/repaint-nerf/native."""
-    root = os.environ.get("REPAINT_NERF_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "repaint-nerf")
-    return Path(root) / "native"
-
-
-def _build() -> Path:
-    src = SOURCE.read_bytes()
-    key = hashlib.sha1(src + " ".join(FLAGS).encode() + platform.machine().encode()).hexdigest()[:16]
-    out = cache_dir() / f"hashgrid-{key}.so"
-    if out.exists():
-        return out
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")
-    if cc is None:
-        raise RuntimeError("no C compiler found (install gcc, e.g. apt install build-essential)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".hashgrid-", suffix=".so", dir=out.parent)
-    os.close(fd)
-    try:
-        proc = subprocess.run([cc, *FLAGS, str(SOURCE), "-o", tmp, "-lm"], capture_output=True, text=True)
-        if proc.returncode != 0:
-            raise RuntimeError(f"{cc} failed: {proc.stderr.strip()[-800:]}")
-        os.replace(tmp, out)  # atomic: concurrent builders never load a half-written library
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return out
+from core.native import NativeLibrary
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -70,23 +26,12 @@ def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     return lib
 
 
+LIBRARY = NativeLibrary(Path(__file__).with_name("csrc") / "hashgrid.c", _bind, "hash-grid")
+
+
 def native_lib() -> ctypes.CDLL | None:
     """The loaded kernel, building it on first use; None (after one warning) when it cannot be built."""
-    global _lib, _failed
-    if _lib is not None or _failed is not None:
-        return _lib
-    with _lock:
-        if _lib is None and _failed is None:
-            if os.environ.get(ENV_NATIVE, "1") == "0":
-                _failed = f"${ENV_NATIVE}=0"
-                return None
-            try:
-                _lib = _bind(ctypes.CDLL(str(_build())))
-            except Exception as exc:  # noqa: BLE001 - any build or load failure means: use the eager path
-                _failed = f"{type(exc).__name__}: {exc}"
-                warnings.warn(f"native hash-grid kernel unavailable ({_failed}); using the slower PyTorch path",
-                              RuntimeWarning, stacklevel=2)
-    return _lib
+    return LIBRARY.get()
 
 
 def native_available() -> bool:
