@@ -138,6 +138,17 @@ class OccupancyGrid:
             self._dilated[key] = g.view(-1) > 0
         return self._dilated[key]
 
+    def blocks(self, factor: int) -> Tensor:
+        """(cascades, (resolution/factor)^3) bool: whether any cell of each factor^3 block is occupied (a coarse
+        level for skipping large empty regions in one jump), cached per update."""
+        key = (self._version, "blocks", factor)
+        if key not in self._dilated:
+            self._dilated = {k: v for k, v in self._dilated.items() if k[0] == self._version}
+            r = self.resolution
+            g = self.occupied.view(self.cascades, 1, r, r, r).float()
+            self._dilated[key] = (F.max_pool3d(g, factor, stride=factor) > 0).reshape(self.cascades, -1)
+        return self._dilated[key]
+
     def occupied_segment(self, a: Tensor, b: Tensor) -> Tensor:
         """Whether any occupied cell lies near each segment a -> b (N,3 field-space endpoints), for any warp:
         a box around the warped midpoint reaching past both warped ends (with slack for the warp's bend).

@@ -19,6 +19,7 @@ from torch import Tensor
 from core.device import synchronize
 from core.errors import UserError
 from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
+from core.render import march_native
 from core.render.occupancy import OccupancyGrid, default_step
 from core.render.raymarch import (RayPlan, Samples, cat_samples, cube, expand_segments, next_segments,
                                   plan_rays)
@@ -72,6 +73,7 @@ class _Timer:
 
 WARPED_CAP_FACTOR = 4  # per-ray step cap of warped fields, in units of max_samples
 CONE_KNEE = 1.0  # field units: cone stepping grows steps from here on at the latest
+NATIVE_FIRST_ROUND = 4  # occupied samples per ray in the native marcher's first round (doubling after)
 
 
 def _check(opts: RenderOptions) -> None:
@@ -129,11 +131,14 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
     T < t_threshold for a differentiable second pass (training). None when cancelled."""
     prof, k = opts.profile, opts.seg_steps
     n = o.shape[0]
-    nseg = (plan.n_steps + k - 1) // k
-    seg_next = torch.zeros(n, dtype=torch.long, device=dev)
+    native = march_native.usable(o, plan, grid)
+    if native:  # per ray: the next step to march
+        cursor, end = torch.zeros(n, dtype=torch.long, device=dev), plan.n_steps
+    else:  # per ray: the next coarse segment to test
+        cursor, end = torch.zeros(n, dtype=torch.long, device=dev), (plan.n_steps + k - 1) // k
     carry = torch.zeros(n, dtype=torch.float64, device=dev)
     tau_stop = -math.log(opts.t_threshold) if opts.t_threshold > 0 else math.inf
-    alive = nseg > 0
+    alive = end > 0
     totals: dict[str, Tensor] = {}
     kept: list[Samples] = []
     rounds = 0
@@ -144,12 +149,16 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             ids = alive.nonzero(as_tuple=True)[0]
             if ids.numel() == 0:
                 break
-            # segments per ray this round: 1, 2, 4, ... (rays still alive late are mostly transparent), capped
-            # by the look-ahead window and the memory budget
-            take = max(1, min(opts.seg_window, 1 << rounds, opts.chunk // (ids.numel() * k)))
+            # work per ray grows each round (rays still alive late are mostly transparent), capped by the
+            # look-ahead window and the memory budget
+            if native:  # occupied samples per ray: 4, 8, 16, ...
+                take = max(1, min(k * opts.seg_window, NATIVE_FIRST_ROUND << rounds, opts.chunk // ids.numel()))
+                s = march_native.march(o, d, plan, grid, ids, cursor, take, opts.perturb)
+            else:  # coarse segments per ray: 1, 2, 4, ...
+                take = max(1, min(opts.seg_window, 1 << rounds, opts.chunk // (ids.numel() * k)))
+                segs = next_segments(o, d, plan, grid, ids, cursor, k, opts.seg_window, take)
+                s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
             rounds += 1
-            segs = next_segments(o, d, plan, grid, ids, seg_next, k, opts.seg_window, take)
-            s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
         acc.stats["candidates"] += len(s)
         acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
         if collect:
@@ -171,7 +180,7 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
                     if name not in ("weights", "tau"):
                         totals[name] = totals[name] + v if name in totals else v
                 carry = carry + out["tau"]
-        alive = (seg_next < nseg) & (carry < tau_stop)
+        alive = (cursor < end) & (carry < tau_stop)
     return totals, kept
 
 
