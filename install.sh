@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Installs everything the editor and its tests need into ./.venv (Debian 12, Python 3.11, as root).
 # System packages: Xvfb for GUI tests and headless use, Mesa for OpenGL (EGL/GLX), a C compiler for the
-# native hash-grid kernel (core/field/csrc) and torch.compile.
+# native CPU kernels (core/field/csrc, core/render/csrc) and torch.compile.
 set -euo pipefail
 cd "$(dirname "$0")"
 PY=${PYTHON:-python3.11}
