@@ -223,7 +223,8 @@ class EditorApp:
         imgui.set_next_window_size(imgui.ImVec2(width, height))
         flags = (imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
                  | imgui.WindowFlags_.no_scrollbar | imgui.WindowFlags_.no_bring_to_front_on_focus
-                 | imgui.WindowFlags_.no_scroll_with_mouse)
+                 | imgui.WindowFlags_.no_scroll_with_mouse
+                 | imgui.WindowFlags_.no_background)  # the image covers it: one blended full-window pass less
         imgui.push_style_var(imgui.StyleVar_.window_padding, imgui.ImVec2(0, 0))
         imgui.begin("Viewport", None, flags)
         avail = imgui.get_content_region_avail()

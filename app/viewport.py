@@ -41,6 +41,8 @@ class Viewport:
         self.depth_range = (0.0, 1.0)
         self.feature_range = ((0.0,) * 3, (1.0,) * 3)
         self.frame_size: tuple[int, int] | None = None  # (w, h) of the last uploaded render
+        self._uploads = 0  # bumped by every upload: the drawn texture is stale
+        self._drawn: tuple | None = None  # what the viewport texture shows now
 
     def has(self, name: str) -> bool:
         return name in self.textures
@@ -58,6 +60,7 @@ class Viewport:
             tex.repeat_x = tex.repeat_y = False
             self.textures[name] = tex
         tex.write(data.tobytes())
+        self._uploads += 1
 
     def upload_frame(self, frame: dict) -> None:
         """Take a render from the worker: 'rgb' (H,W,3), optional 'depth' (H,W), 'feature_pca' (H,W,3), 'similarity' (H,W)."""
@@ -84,6 +87,7 @@ class Viewport:
             tex = self.textures.pop("sim", None)
             if tex is not None:
                 tex.release()
+                self._uploads += 1
             return
         self._upload("sim", sim)
 
@@ -98,6 +102,10 @@ class Viewport:
         if "rgb" not in self.textures:
             return None
         w, h = max(int(size[0]), 1), max(int(size[1]), 1)
+        state = (mode, float(threshold), w, h, self._uploads, self.depth_range, self.feature_range)
+        if state == self._drawn and self.color is not None:
+            return self.color  # unchanged: on a software rasterizer a full-viewport pass costs milliseconds
+        self._drawn = state
         if self.color is None or self.color.size != (w, h):
             if self.fbo is not None:
                 self.fbo.release()
@@ -134,3 +142,4 @@ class Viewport:
         if self.fbo is not None:
             self.fbo.release()
             self.color.release()
+        self.fbo = self.color = self._drawn = None

@@ -30,14 +30,22 @@ class Window:
         glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
         glfw.window_hint(glfw.OPENGL_FORWARD_COMPAT, True)
         glfw.window_hint(glfw.VISIBLE, visible)
-        # EGL, not GLX: core's offscreen rasterizer (the scene generator) uses a standalone EGL context, and
-        # once a process has one, Mesa refuses a GLX context (BadAccess in glXMakeCurrent).
-        if os.environ.get("REPAINT_NERF_GL_API", "egl") == "egl":
-            glfw.window_hint(glfw.CONTEXT_CREATION_API, glfw.EGL_CONTEXT_API)
-        self.handle = glfw.create_window(width, height, title, None, None)
-        if not self.handle:  # no EGL for this display: the platform's native API
-            glfw.window_hint(glfw.CONTEXT_CREATION_API, glfw.NATIVE_CONTEXT_API)
+        # The platform's API (GLX on X11) presents fast: with Mesa's llvmpipe under Xvfb an EGL window's
+        # swap costs 13 ms per 1280x800 frame, a GLX window's 0.4 ms. But once a process holds an EGL context
+        # (core's scene rasterizer), Mesa refuses GLX ones (BadAccess in glXMakeCurrent): then EGL.
+        # $REPAINT_NERF_GL_API = egl | native overrides.
+        from core.synth.raster import egl_context_made
+
+        api = os.environ.get("REPAINT_NERF_GL_API", "auto")
+        apis = [glfw.NATIVE_CONTEXT_API, glfw.EGL_CONTEXT_API]
+        if api == "egl" or (api == "auto" and egl_context_made()):
+            apis.reverse()
+        self.handle = None
+        for choice in apis:  # the other API when the display offers no context of the first
+            glfw.window_hint(glfw.CONTEXT_CREATION_API, choice)
             self.handle = glfw.create_window(width, height, title, None, None)
+            if self.handle:
+                break
         if not self.handle:
             glfw.terminate()
             raise UserError("cannot create an OpenGL 3.3 window", hint="update the graphics driver (or Mesa)")

@@ -76,7 +76,7 @@ class Crashed:
 class Worker:
     """Owns `engine` on a background thread. The UI calls `request_render`, `call`, `poll`."""
 
-    def __init__(self, engine: Any, target_ms: float = 60.0, train_budget_s: float = 0.1,
+    def __init__(self, engine: Any, target_ms: float = 40.0, train_budget_s: float = 0.1,
                  rest_s: float = 0.15, preview_interval_s: float = 1.0):
         self.engine = engine
         self.controller = DynamicResolution(target_ms=target_ms, scale=0.25)
@@ -214,10 +214,18 @@ class Worker:
             req = self._latest
         return req is not None and (time.perf_counter() - req.time) < self.rest_s
 
+    def _interrupted(self) -> Callable[[], bool]:
+        """True once a new view is requested or a command waits: training yields between steps, so a camera
+        move waits for at most one step, not the whole training budget."""
+        with self._lock:
+            serial = self._latest.serial if self._latest is not None else 0
+        return lambda: (self._stop.is_set() or not self.commands.empty()
+                        or (self._latest is not None and self._latest.serial != serial))
+
     def _train(self) -> bool:
         if not self.training or self._camera_moving() or not getattr(self.engine, "can_train", lambda: False)():
             return False
-        info = self.engine.train_for(self.train_budget_s)
+        info = self.engine.train_for(self.train_budget_s, stop=self._interrupted())
         if info is not None:
             self._publish(Status(dict(info)))
         now = time.perf_counter()

@@ -44,6 +44,27 @@ def test_pause_stops_training(engine):
     assert engine.train_for(0.05) is not None
 
 
+def test_training_yields_between_steps_when_asked(engine):
+    start = engine.trainer.step_count
+    info = engine.train_for(60.0, stop=lambda: engine.trainer.step_count >= start + 3)
+    assert engine.trainer.step_count == start + 3 and info["phase"] == "reconstruct"  # not 60 s of steps
+    assert engine.train_for(60.0, stop=lambda: True)["step"] == start + 4  # at least one step
+
+
+def test_worker_stops_training_for_a_new_view(engine):
+    from app.worker import Worker
+
+    worker = Worker(engine)
+    stop = worker._interrupted()
+    assert not stop()
+    worker.request_render(engine.info()["cameras"][0], key=("moved",))
+    assert stop()
+    stop = worker._interrupted()
+    assert not stop()
+    worker.call("info")
+    assert stop()
+
+
 def test_save_and_export(engine, tmp_path):
     root = engine.save()
     assert engine.workspace.original_version is not None and root

@@ -65,6 +65,31 @@ def test_update_cadence_and_sample_counts():
     assert sum(calls) == n // 4 + n // 4
 
 
+def test_spread_updates_do_the_same_work_in_even_steps():
+    """spread=True: the first update is whole, later ones evaluate 1/16 of their cells per step and apply the
+    rule on the period's last step; the grid then agrees with an unspread one."""
+    calls = []
+
+    def fn(x):
+        calls.append(x.shape[0])
+        return SphereField(radius=0.5, sigma=20.0).density(x)
+
+    n = 16 ** 3
+    grid = OccupancyGrid(resolution=16, device="cpu", warmup_steps=1000, spread=True)
+    grid.update(0, fn)
+    assert sum(calls) == n and grid.occupied_fraction() < 0.5  # seeded at once
+    version = grid._version
+    for step in range(1, 17):
+        calls.clear()
+        grid.update(step, fn)
+        assert sum(calls) == n // 16
+        assert grid._version == version + (step == 16)
+    plain = OccupancyGrid(resolution=16, device="cpu", warmup_steps=1000)
+    _warm(plain, fn, 17)
+    agree = (grid.occupied == plain.occupied).float().mean()
+    assert float(agree) > 0.97
+
+
 def test_decay_and_threshold():
     """new = max(0.95 * old, sampled): a field that vanishes decays geometrically and cells empty out."""
     grid = OccupancyGrid(resolution=8, device="cpu")

@@ -32,7 +32,8 @@ class OccupancyGrid:
 
     def __init__(self, resolution: int = 128, cascades: int = 1, bound: float = 1.0, device=None,
                  min_step: float | None = None, update_every: int = 16, warmup_steps: int = 256,
-                 decay: float = 0.95, eval_chunk: int = 1 << 18, warp=None, march_extent: float | None = None):
+                 decay: float = 0.95, eval_chunk: int = 1 << 18, warp=None, march_extent: float | None = None,
+                 spread: bool = False):
         if resolution < 1 or cascades < 1 or bound <= 0:
             raise UserError(f"occupancy grid needs resolution >= 1, cascades >= 1 and bound > 0 "
                             f"(got {resolution}, {cascades}, {bound})")
@@ -47,6 +48,9 @@ class OccupancyGrid:
         self.warmup_steps = int(warmup_steps)
         self.decay = float(decay)
         self.eval_chunk = int(eval_chunk)
+        self.spread = bool(spread)  # see update()
+        self._pending: tuple[list[Tensor], Tensor, int] | None = None
+        self._seeded = False  # the density holds at least one update (or a checkpoint's)
         n = self.resolution ** 3
         self.density = torch.zeros(self.cascades, n, device=self.device)
         self.occupied = torch.ones(self.cascades, n, dtype=torch.bool, device=self.device)
@@ -220,14 +224,10 @@ class OccupancyGrid:
         self._version += 1
         return int(cells.numel())
 
-    @torch.no_grad()
-    def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:
-        """Call every training step; acts every `update_every` steps: evaluate density at jittered cell points
-        (all cells during warm-up, else 1/4 uniform + 1/4 occupied), new = max(decay * old, sampled)."""
-        if step % self.update_every != 0:
-            return
+    def _update_cells(self, step: int) -> list[Tensor]:
+        """Per cascade, the cells an update evaluates: all during warm-up, else 1/4 uniform + 1/4 occupied."""
         n = self.resolution ** 3
-        fresh = torch.zeros_like(self.density)
+        cells = []
         for c in range(self.cascades):
             if step < self.warmup_steps:
                 idx = torch.arange(n, device=self.device)
@@ -236,15 +236,49 @@ class OccupancyGrid:
                 occ = self.occupied[c].nonzero(as_tuple=True)[0]
                 if occ.numel():
                     idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (n // 4,), device=self.device)]])
+            cells.append(idx)
+        return cells
+
+    def _sample(self, cells: list[Tensor], fresh: Tensor, density_fn: Callable[[Tensor], Tensor]) -> None:
+        for c, idx in enumerate(cells):
             for s in range(0, idx.numel(), self.eval_chunk):
                 part = idx[s:s + self.eval_chunk]
                 sigma = density_fn(self._cell_points(part, c)).reshape(-1).float()
                 sigma = torch.nan_to_num(sigma, nan=0.0, posinf=3.0e38).clamp_min(0.0).to(self.device)
                 fresh[c].scatter_reduce_(0, part, sigma, reduce="amax")
+
+    def _apply(self, fresh: Tensor) -> None:
+        self._seeded = True
         self.density = torch.maximum(self.density * self.decay, fresh)
         self.mean_density = float(self.density[0].mean())
         self.occupied = self.density > self.threshold()
         self._version += 1
+
+    @torch.no_grad()
+    def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:
+        """Call every training step; acts every `update_every` steps: evaluate density at jittered cell points
+        (all cells during warm-up, else 1/4 uniform + 1/4 occupied), new = max(decay * old, sampled).
+
+        With `spread`, each call evaluates 1/update_every of the cells instead, and the period's last call
+        applies the rule: the same work, but no step pays a whole sweep (an interactive viewport waits for at
+        most one step, and a warm-up sweep of 64^3 cells takes a quarter second on a 2-core CPU). The first
+        update of a fresh grid is whole either way: until it, every cell is occupied and steps cost 3x more."""
+        if not self.spread or not self._seeded:
+            if step % self.update_every == 0:
+                fresh = torch.zeros_like(self.density)
+                self._sample(self._update_cells(step), fresh, density_fn)
+                self._apply(fresh)
+            return
+        if self._pending is None:
+            self._pending = (self._update_cells(step), torch.zeros_like(self.density), 0)
+        cells, fresh, k = self._pending
+        u = self.update_every
+        self._sample([idx[idx.numel() * k // u: idx.numel() * (k + 1) // u] for idx in cells], fresh, density_fn)
+        if k + 1 == u:
+            self._pending = None
+            self._apply(fresh)
+        else:
+            self._pending = (cells, fresh, k + 1)
 
     # --- checkpoints ------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Tensor]:
@@ -268,6 +302,7 @@ class OccupancyGrid:
         md = state.get("mean_density")
         self.mean_density = float(md.reshape(-1)[0]) if md is not None else float(self.density[0].mean())
         self._version += 1
+        self._seeded = True
 
 
 def grid_for_field(field, resolution: int = 128, cascades: int = 1, **kw) -> OccupancyGrid:

@@ -390,13 +390,14 @@ class RepaintTrainer:
                 callback(info)
         return info
 
-    def train_for(self, seconds: float) -> dict:
-        """Step for about `seconds` (at least one step); the editor's worker calls this between renders."""
+    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict:
+        """Step for about `seconds` (at least one step), ending early once `stop()` turns true; the editor's
+        worker calls this between renders and stops it when the user moves the camera."""
         info: dict = {"phase": "repaint", "step": self.step_count, "done": self.done}
         t_end = time.perf_counter() + seconds
         while not self.done and not self._cancel.is_set() and not self._paused.is_set():
             info = self.step()
-            if time.perf_counter() >= t_end:
+            if time.perf_counter() >= t_end or (stop is not None and stop()):
                 break
         info = dict(info)
         info["done"] = self.done

@@ -157,13 +157,24 @@ class Frame:
     mask: np.ndarray
 
 
+_egl_used = False  # a standalone EGL context exists in this process (Mesa then refuses GLX ones)
+
+
+def egl_context_made() -> bool:
+    """Whether this process has created the rasterizer's EGL context: with Mesa, a GLX context made after it
+    fails (BadAccess in glXMakeCurrent), so a window opened later must use EGL too."""
+    return _egl_used
+
+
 class Rasterizer:
     """Renders lists of SceneObject from pinhole cameras with one standalone EGL context (use as a context manager)."""
 
     def __init__(self, width: int, height: int, near: float = 0.05, far: float = 50.0):
         import moderngl
 
+        global _egl_used
         self.width, self.height, self.near, self.far = width, height, near, far
+        _egl_used = True
         self.ctx = moderngl.create_standalone_context(backend="egl", require=330)
         self.prog = self.ctx.program(vertex_shader=_VERT, fragment_shader=_FRAG)
         s = SUPERSAMPLE

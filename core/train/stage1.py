@@ -57,6 +57,7 @@ class TrainConfig:
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
+    grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
     scene_warp: bool = True  # forward / unbounded scenes: NDC / contraction (core.field.contraction)
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
@@ -190,7 +191,8 @@ class Stage1Trainer:
                                          else (None, None))
 
         self.grid = grid_for_field(self.field, self.cfg.grid_resolution, self.cfg.grid_cascades, device=self.device,
-                                   update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps)
+                                   update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps,
+                                   spread=self.cfg.grid_update_spread)
         self.optimizer = self._make_optimizer()
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
@@ -456,11 +458,12 @@ class Stage1Trainer:
         return ((self.budget_steps is not None and self.step_count >= self.budget_steps)
                 or (self.budget_seconds is not None and self.train_seconds >= self.budget_seconds))
 
-    def train_for(self, seconds: float) -> dict:
-        """Train for about `seconds` more (at least one step); the editor's worker calls this between renders."""
+    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict:
+        """Train for about `seconds` more (at least one step), ending early once `stop()` turns true; the
+        editor's worker calls this between renders and stops it when the user moves the camera."""
         info = self.train(steps=self.step_count + 1) or {}
-        if seconds > info.get("seconds", 0.0):
-            info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0)) or info
+        if seconds > info.get("seconds", 0.0) and not (stop is not None and stop()):
+            info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0), stop=stop) or info
         return info
 
     # -- evaluation ---------------------------------------------------------------------------------
