@@ -275,10 +275,11 @@ def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
 
 
 # -- end to end on a tiny trained scene -----------------------------------------------------------
-E2E_STEPS = 400
-# 32x32, 12 views, E2E_STEPS steps of a shrunk field: measured IoU 0.73 (120 steps: 0.09, the field had not
-# separated the objects yet; the 0.9 target belongs to bench mask)
-E2E_IOU = 0.55
+E2E_STEPS = 800
+# 32x32, 12 views, a shrunk field, measured over seeds 0-3: 400 steps gave IoU 0.29-0.87 (the field had not
+# separated the objects in every run), 800 steps 0.908-0.952 with every view's IoU at least 0.51. The 0.9
+# target belongs to bench mask.
+E2E_IOU = 0.8
 
 
 def _tiny_field_config():
@@ -338,7 +339,7 @@ def test_masks_from_one_query_agree_across_views(trained_ws):
     masks = masks_for_views(trainer.field, trainer.grid, cams.to(trainer.device), sel, cache=cache)
     assert _iou(masks, gts) > E2E_IOU
     per_view = [_iou([m], [g]) for m, g in zip(masks, gts) if g.sum() > 20]
-    assert min(per_view) > 0.2  # every view, not just the patch's
+    assert min(per_view) > 0.3  # every view, not just the patch's
 
 
 @pytest.mark.slow
