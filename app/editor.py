@@ -175,6 +175,7 @@ class EditorApp:
         select_tool = self.state.tool == "select" and self.state.capabilities.get("select") is None
         if hovered and imgui.is_mouse_clicked(imgui.MouseButton_.left) and select_tool:
             self.drag_start = self._image_pos(io)
+            self.worker.hold(True)  # the release's selection then runs at once, not after a training step
         if self.drag_start is not None:
             x, y = self._image_pos(io)
             x0, y0 = self.drag_start
@@ -189,6 +190,7 @@ class EditorApp:
                     self.state.selection_busy = True
                     self.events.append((time.perf_counter(), "patch_release", rect))
                     self.call("select", cam.cameras(*self.view_size), rect, mode)
+                self.worker.hold(False)  # after the select is queued: the worker runs commands before training
             return
         if hovered:
             d = io.mouse_delta

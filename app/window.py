@@ -18,6 +18,21 @@ import numpy as np  # noqa: E402
 from core.errors import UserError  # noqa: E402
 
 
+def mouse_event(x: float, y: float, button: int | None = None, down: bool | None = None, shift: bool = False,
+                ctrl: bool = False) -> Callable[["imgui.IO"], None]:
+    """An injector (for `Window.inject`) that moves the mouse to (x, y) and optionally presses or releases
+    `button`, with the shift / ctrl modifiers held: scripted input for GUI tests and the viewport benchmark."""
+
+    def fn(io: "imgui.IO") -> None:
+        if shift or ctrl:  # key events before a button event would delay it a frame (imgui's input trickling)
+            io.add_key_event(imgui.Key.mod_shift, shift)
+            io.add_key_event(imgui.Key.mod_ctrl, ctrl)
+        io.add_mouse_pos_event(x, y)
+        if button is not None:
+            io.add_mouse_button_event(button, bool(down))
+    return fn
+
+
 class Window:
     """A glfw window with GL 3.3 core, moderngl and imgui (+ implot) set up."""
 

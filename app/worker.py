@@ -84,6 +84,7 @@ class Worker:
         self.rest_s = rest_s
         self.preview_interval_s = preview_interval_s
         self.training = True
+        self.held = False  # the user is mid-gesture (a patch drag): no new training step starts
         self.commands: queue.Queue = queue.Queue()
         self.results: queue.Queue = queue.Queue()
         self._lock = threading.Lock()
@@ -128,6 +129,12 @@ class Worker:
     def call(self, name: str, *args: Any, tag: Any = None, **kwargs: Any) -> None:
         """Run `engine.name(*args, **kwargs)` on the worker; a `Reply` comes back through `poll`."""
         self.commands.put((name, args, kwargs, tag))
+        self._wake.set()
+
+    def hold(self, on: bool) -> None:
+        """While held, the worker starts no training step, so the command the gesture ends with (a patch's
+        selection) runs at once instead of after a step."""
+        self.held = bool(on)
         self._wake.set()
 
     def set_training(self, on: bool) -> None:
@@ -219,11 +226,12 @@ class Worker:
         move waits for at most one step, not the whole training budget."""
         with self._lock:
             serial = self._latest.serial if self._latest is not None else 0
-        return lambda: (self._stop.is_set() or not self.commands.empty()
+        return lambda: (self._stop.is_set() or self.held or not self.commands.empty()
                         or (self._latest is not None and self._latest.serial != serial))
 
     def _train(self) -> bool:
-        if not self.training or self._camera_moving() or not getattr(self.engine, "can_train", lambda: False)():
+        if (not self.training or self.held or self._camera_moving()
+                or not getattr(self.engine, "can_train", lambda: False)()):
             return False
         info = self.engine.train_for(self.train_budget_s, stop=self._interrupted())
         if info is not None:

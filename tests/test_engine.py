@@ -2,6 +2,8 @@
 and clear messages for missing input or backends that are not built yet."""
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -51,7 +53,7 @@ def test_training_yields_between_steps_when_asked(engine):
     assert engine.train_for(60.0, stop=lambda: True)["step"] == start + 4  # at least one step
 
 
-def test_worker_stops_training_for_a_new_view(engine):
+def test_worker_yields_training_to_views_commands_and_gestures(engine):
     from app.worker import Worker
 
     worker = Worker(engine)
@@ -63,6 +65,13 @@ def test_worker_stops_training_for_a_new_view(engine):
     assert not stop()
     worker.call("info")
     assert stop()
+    worker.commands.get_nowait()
+    assert not worker._interrupted()()
+    worker.hold(True)  # a patch drag: no training step starts, a running one yields
+    assert worker._interrupted()() and worker._train() is False
+    worker.hold(False)
+    time.sleep(worker.rest_s)  # the requested view has come to rest
+    assert worker._train() is True
 
 
 def test_save_and_export(engine, tmp_path):

@@ -171,16 +171,9 @@ def view_pixels(app, shot):
 
 
 def mouse(x, y, button=None, down=None, shift=False, ctrl=False):
-    from imgui_bundle import imgui
+    from app.window import mouse_event
 
-    def fn(io):
-        if shift or ctrl:  # key events before a button event would delay it a frame (imgui's input trickling)
-            io.add_key_event(imgui.Key.mod_shift, shift)
-            io.add_key_event(imgui.Key.mod_ctrl, ctrl)
-        io.add_mouse_pos_event(x, y)
-        if button is not None:
-            io.add_mouse_button_event(button, down)
-    return fn
+    return mouse_event(x, y, button, down, shift, ctrl)
 
 
 def drag(app, p0, p1, steps=6, **mods):
