@@ -158,17 +158,27 @@ def load_stable_diffusion(path: str | os.PathLike, device: torch.device | str | 
     else:
         unet, vae, text_encoder, tokenizer, scheduler = _load_folder(path, dtype)
 
+    return assemble(unet, vae, text_encoder, tokenizer, scheduler, dev, dtype, cpu_offload, attention_slicing, path)
+
+
+def assemble(unet, vae, text_encoder, tokenizer, scheduler, device: torch.device, dtype: torch.dtype,
+             cpu_offload: bool = False, attention_slicing: bool = True, path: Path | None = None) -> StableDiffusion:
+    """Place loaded (or built) SD parts on `device` in `dtype` with the memory options, as a StableDiffusion."""
+    cuda = is_cuda(device)
+    for m in (unet, vae, text_encoder):
+        if next(m.parameters()).dtype != dtype:
+            m.to(dtype=dtype)
     offload = bool(cpu_offload and cuda)
     if offload:
         text_encoder.to("cpu", torch.float32)
         unet.to("cpu")
     else:
-        text_encoder.to(dev)
-        unet.to(dev)
-    vae.to(dev)
+        text_encoder.to(device)
+        unet.to(device)
+    vae.to(device)
     if cuda and attention_slicing:
         unet.set_attention_slice("auto")
         if hasattr(vae, "enable_slicing"):
             vae.enable_slicing()
     return StableDiffusion(unet=unet, vae=vae, text_encoder=text_encoder, tokenizer=tokenizer,
-                           scheduler=scheduler, device=dev, dtype=dtype, offload_unet=offload, path=path)
+                           scheduler=scheduler, device=device, dtype=dtype, offload_unet=offload, path=path)
