@@ -83,6 +83,22 @@ def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
     assert after["psnr_unmasked"] > 28.0 and after["psnr_unmasked"] > before["psnr_unmasked"] - 4.0, (before, after)
 
 
+def test_analytic_drift_moves_only_the_unmasked_target(tmp_path):
+    from core.repaint.trainer import DRIFT_TINT
+
+    scene, masks = make_scene(tmp_path / "scene", size=16, edited_rgb=(0.12, 0.3, 0.9))
+    field = make_field()
+    plain = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="analytic", steps=1)
+    drift = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="analytic", steps=1,
+                           analytic_drift=0.5)
+    t0, t1 = plain.guidance.targets[0], drift.guidance.targets[0]
+    m = plain.masks[0].bool()
+    assert m.any() and (~m).any()
+    torch.testing.assert_close(t1[..., m], t0[..., m])  # the edit's target is untouched
+    want = t0[..., ~m] + 0.5 * (torch.tensor(DRIFT_TINT).view(1, 3, 1) - t0[..., ~m])
+    torch.testing.assert_close(t1[..., ~m], want)
+
+
 def test_analytic_needs_the_edited_variant(scene):
     from core.errors import UserError
 
