@@ -292,7 +292,13 @@ class EditorApp:
         idle = not (self._active or self.window.has_pending_input())
         wait = self._frame_started + 1.0 / (self.idle_fps if idle else self.max_fps) - time.perf_counter()
         if wait > 0:
-            self.window.wait_events(wait) if idle else time.sleep(wait)
+            # An idle UI sleeps until input or the worker; an active one keeps its pace through input, but a
+            # result from the worker (a frame, a reply) ends the wait: it goes on screen without a pacing delay.
+            deadline = time.perf_counter() + wait
+            while (left := deadline - time.perf_counter()) > 0:
+                self.window.wait_events(left)
+                if idle or self.worker.result_ready():
+                    break
         self._frame_started = time.perf_counter()
         self.window.begin_frame()
         msgs = self.worker.poll()

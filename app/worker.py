@@ -96,6 +96,7 @@ class Worker:
         self._preview_due = False
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._result = threading.Event()  # a frame, reply or crash waits in `results` (not only status)
         self.projector = FeatureProjector()
         self.notify: Callable[[], None] | None = None  # wakes the UI for a frame, reply or crash (thread-safe)
         self.thread = threading.Thread(target=self._run, name="repaint-nerf-worker", daemon=True)
@@ -141,8 +142,13 @@ class Worker:
         self.training = bool(on)
         self._wake.set()
 
+    def result_ready(self) -> bool:
+        """Whether a frame, reply or crash has been published since the last poll."""
+        return self._result.is_set()
+
     def poll(self) -> list:
         """All messages published since the last poll (Frame, Reply, Status, Crashed)."""
+        self._result.clear()
         out = []
         while True:
             try:
@@ -153,8 +159,10 @@ class Worker:
     # ---- worker side
     def _publish(self, msg: Any) -> None:
         self.results.put(msg)
-        if self.notify is not None and not isinstance(msg, Status):  # status alone can wait for the next frame
-            self.notify()
+        if not isinstance(msg, Status):  # status alone can wait for the next frame
+            self._result.set()
+            if self.notify is not None:
+                self.notify()
 
     def _stale(self, serial: int) -> Callable[[], bool]:
         # A queued command (a patch to select, an undo) also interrupts a render: it is served first.
