@@ -23,6 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--steps", type=int, default=None, help="edit steps (default 300 on CPU; the paper runs 10000)")
     p.add_argument("--lambda-unmask", type=float, default=100.0, help="weight of the unmask loss (paper: 100)")
+    p.add_argument("--unmask-reduction", choices=("mean", "sum"), default="mean",
+                   help="the unmask loss averaged over pixels (official code, default) or summed over rays (the "
+                        "paper's Eq.; holds the background far more firmly at the same weight)")
     p.add_argument("--lambda-clip", type=float, default=None,
                    help="weight of the CLIP background loss (default 0.01 with --guidance sd, else 0; 0 loads no CLIP)")
     p.add_argument("--resolution", type=int, default=None,
@@ -101,7 +104,8 @@ def run(args: argparse.Namespace) -> int:
         if lambda_clip > 0:
             resolve_model_path("clip", args.clip_path, settings)
     ws, scene, field, grid, masks = open_workspace(args.workspace, args.device)
-    cfg = RepaintConfig(lambda_unmask=args.lambda_unmask, lambda_clip=lambda_clip, resolution=args.resolution,
+    cfg = RepaintConfig(lambda_unmask=args.lambda_unmask, unmask_reduction=args.unmask_reduction,
+                        lambda_clip=lambda_clip, resolution=args.resolution,
                         optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed)
     if args.steps is not None:
         cfg.steps = args.steps

@@ -38,6 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--evals", type=int, default=6, help="evaluations along the main run")
     p.add_argument("--optimizer", default="official", choices=("paper", "official"))
     p.add_argument("--no-ablation", action="store_true")
+    p.add_argument("--unmask-reduction", choices=("mean", "sum"), default="mean",
+                   help="the unmask loss as the official code reduces it (mean) or as the paper writes it (sum)")
     p.add_argument("--no-offline", action="store_true", help="skip timing recolour and remove")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", required=True, help="output JSON path")
@@ -93,7 +95,8 @@ def run_edit(scene, state, masks, guidance: str, steps: int, lambda_unmask: floa
 
     field, grid = state["make"]()
     cfg = RepaintConfig(steps=steps, lambda_unmask=lambda_unmask, optimizer=args.optimizer, seed=args.seed,
-                        max_samples=state["max_samples"], analytic_drift=drift)
+                        max_samples=state["max_samples"], analytic_drift=drift,
+                        unmask_reduction=args.unmask_reduction)
     t0 = time.perf_counter()
     tr = RepaintTrainer(scene, field, grid, masks=masks, guidance=guidance, prompt=prompt, color=color, config=cfg)
     setup_s = time.perf_counter() - t0
@@ -184,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
         result = {
             "scene": str(root), "preset": meta.get("preset"), "device": describe(device),
             "object_id": obj, "stage1": stage1, "selection": sel_info, "optimizer": args.optimizer,
+            "unmask_reduction": args.unmask_reduction,
             "curve": curve[1:],
             "before": before,
             "final": {**final, "unmasked_drop_db": before["psnr_unmasked"] - final["psnr_unmasked"],
