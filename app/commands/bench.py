@@ -10,7 +10,7 @@ import importlib
 import pkgutil
 
 NAME = "bench"
-HELP = "run a benchmark (recon, mask, edit, viewport, soak) and write its figures as JSON and PNG"
+HELP = "run a benchmark (recon, mask, edit, sdcost, viewport, ...) and write its figures as JSON (and PNG)"
 
 
 def _benchmarks():
