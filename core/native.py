@@ -77,7 +77,3 @@ class NativeLibrary:
                     warnings.warn(f"native {self.what} kernel unavailable ({self.failed}); using the slower "
                                   f"PyTorch path", RuntimeWarning, stacklevel=3)
         return self.lib
-
-    def reset(self) -> None:
-        """Forget the loaded library and any failure (tests; a later `get()` builds again)."""
-        self.lib, self.failed = None, None

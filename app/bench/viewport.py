@@ -61,7 +61,10 @@ def run(args: argparse.Namespace) -> int:
             xvfb.wait(timeout=10)
 
 
-def _select_ms(app, patch, drag_s: float = 0.3) -> float | None:
+PATCH_DRAG_S = 0.3  # how long the scripted patch drag lasts, as a user's
+
+
+def _select_ms(app, patch, drag_s: float = PATCH_DRAG_S) -> float | None:
     """A patch dragged over the viewport as a user does (press, `drag_s` seconds of movement, release, by
     injected mouse input); milliseconds from the release to the end of the frame that shows its mask."""
     from app.window import mouse_event
@@ -142,7 +145,7 @@ def _bench(args, engine) -> int:
                     break
             result["tool_to_feature_frame_ms"] = (time.perf_counter() - t_tool) * 1000
             result["patch_to_mask_ms"] = _select_ms(app, (0.45, 0.45, 0.55, 0.55))
-            result["patch_drag_s"] = 0.3
+            result["patch_drag_s"] = PATCH_DRAG_S
             # Slider -> mask: frames until the screen changes after a threshold change.
             base = app.frame(capture=True)
             app.state.threshold = -0.5 if app.state.threshold > 0 else 0.9

@@ -198,19 +198,16 @@ def run(args: argparse.Namespace) -> int:
         }
         if not args.no_ablation:
             steps = args.ablation_steps or args.steps
-            for lam in ABLATION:
-                r = run_edit(scene, state, masks, "analytic", steps, lam, args, (), test)
+
+            def ablation_row(lam: float, drift: float) -> dict:
+                r = run_edit(scene, state, masks, "analytic", steps, lam, args, (), test, drift=drift)
                 row = r["curve"][-1]
-                result["ablation"].append({"lambda_unmask": lam, "steps": r["steps"], "seconds": r["seconds"],
-                                           "psnr_masked": row["psnr_masked"], "psnr_unmasked": row["psnr_unmasked"],
-                                           "unmasked_drop_db": before["psnr_unmasked"] - row["psnr_unmasked"]})
-            result["ablation_drift"] = {"drift": DRIFT, "rows": []}
-            for lam in DRIFT_ABLATION:
-                r = run_edit(scene, state, masks, "analytic", steps, lam, args, (), test, drift=DRIFT)
-                row = r["curve"][-1]
-                result["ablation_drift"]["rows"].append({
-                    "lambda_unmask": lam, "psnr_masked": row["psnr_masked"], "psnr_unmasked": row["psnr_unmasked"],
-                    "unmasked_drop_db": before["psnr_unmasked"] - row["psnr_unmasked"]})
+                return {"lambda_unmask": lam, "steps": r["steps"], "seconds": r["seconds"],
+                        "psnr_masked": row["psnr_masked"], "psnr_unmasked": row["psnr_unmasked"],
+                        "unmasked_drop_db": before["psnr_unmasked"] - row["psnr_unmasked"]}
+
+            result["ablation"] = [ablation_row(lam, 0.0) for lam in ABLATION]
+            result["ablation_drift"] = {"drift": DRIFT, "rows": [ablation_row(lam, DRIFT) for lam in DRIFT_ABLATION]}
         if not args.no_offline:
             for kind in ("recolor", "remove"):
                 r = run_edit(scene, state, masks, kind, args.steps, 100.0, args, (), test,
@@ -228,10 +225,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {out}: masked {final['psnr_masked']:.2f} dB (from {before['psnr_masked']:.2f}), unmasked "
           f"{final['psnr_unmasked']:.2f} dB (from {before['psnr_unmasked']:.2f})")
     if result["ablation"]:
-        print("lambda_unmask | masked dB | unmasked dB")
-        for row in result["ablation"]:
-            print(f"{row['lambda_unmask']:>13g} | {row['psnr_masked']:9.2f} | {row['psnr_unmasked']:11.2f}")
-        print(f"with the guidance's background drifted {DRIFT:g} toward a tint:")
-        for row in result["ablation_drift"]["rows"]:
-            print(f"{row['lambda_unmask']:>13g} | {row['psnr_masked']:9.2f} | {row['psnr_unmasked']:11.2f}")
+        for title, rows in (("lambda_unmask | masked dB | unmasked dB", result["ablation"]),
+                            (f"with the guidance's background drifted {DRIFT:g} toward a tint:",
+                             result["ablation_drift"]["rows"])):
+            print(title)
+            for row in rows:
+                print(f"{row['lambda_unmask']:>13g} | {row['psnr_masked']:9.2f} | {row['psnr_unmasked']:11.2f}")
     return 0

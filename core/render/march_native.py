@@ -61,9 +61,9 @@ def march(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: OccupancyGrid, ids
     assert next_k.is_contiguous() and next_k.dtype == torch.long
     total = LIBRARY.get().mr_march(
         o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), n.data_ptr(), float(plan.step),
-        idc.data_ptr(), n_ids, next_k.data_ptr(), take, occ.data_ptr(), coarse.data_ptr(), factor, grid.resolution, grid.cascades,
-        float(grid.bound), int(bool(perturb)), seed, ray.data_ptr(), ts.data_ptr(), te.data_ptr(), t.data_ptr(),
-        x.data_ptr(), count.data_ptr(), torch.get_num_threads())
+        idc.data_ptr(), n_ids, next_k.data_ptr(), take, occ.data_ptr(), coarse.data_ptr(), factor,
+        grid.resolution, grid.cascades, float(grid.bound), int(bool(perturb)), seed, ray.data_ptr(), ts.data_ptr(),
+        te.data_ptr(), t.data_ptr(), x.data_ptr(), count.data_ptr(), torch.get_num_threads())
     if total < 0:
         raise ValueError(f"the native marcher supports 1 to 16 cascades (got {grid.cascades})")
     return Samples(ray[:total], ts[:total], te[:total], t[:total], x[:total])

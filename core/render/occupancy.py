@@ -127,11 +127,17 @@ class OccupancyGrid:
                 out[sel] = self.occupied[ci][self._cell_index(x[sel], ci)]
         return out & inside
 
-    def dilated(self, c: int, radius: int) -> Tensor:
-        """Cascade c's occupancy dilated by `radius` cells in each axis (box max filter), cached per update."""
-        key = (self._version, c, radius)
+    def _derived(self, key: tuple, make: Callable[[], Tensor]) -> Tensor:
+        """A map derived from the current occupancy, made once per update (older ones are dropped)."""
+        key = (self._version, *key)
         if key not in self._dilated:
             self._dilated = {k: v for k, v in self._dilated.items() if k[0] == self._version}
+            self._dilated[key] = make()
+        return self._dilated[key]
+
+    def dilated(self, c: int, radius: int) -> Tensor:
+        """Cascade c's occupancy dilated by `radius` cells in each axis (box max filter), cached per update."""
+        def make() -> Tensor:
             r = self.resolution
             g = self.occupied[c].view(1, 1, r, r, r).float()
             if radius > 0:
@@ -139,19 +145,17 @@ class OccupancyGrid:
                 for ks in ((k, 1, 1), (1, k, 1), (1, 1, k)):  # separable box max
                     pad = tuple(s // 2 for s in ks)
                     g = F.max_pool3d(g, ks, stride=1, padding=pad)
-            self._dilated[key] = g.view(-1) > 0
-        return self._dilated[key]
+            return g.view(-1) > 0
+        return self._derived((c, radius), make)
 
     def blocks(self, factor: int) -> Tensor:
         """(cascades, (resolution/factor)^3) bool: whether any cell of each factor^3 block is occupied (a coarse
         level for skipping large empty regions in one jump), cached per update."""
-        key = (self._version, "blocks", factor)
-        if key not in self._dilated:
-            self._dilated = {k: v for k, v in self._dilated.items() if k[0] == self._version}
+        def make() -> Tensor:
             r = self.resolution
             g = self.occupied.view(self.cascades, 1, r, r, r).float()
-            self._dilated[key] = (F.max_pool3d(g, factor, stride=factor) > 0).reshape(self.cascades, -1)
-        return self._dilated[key]
+            return (F.max_pool3d(g, factor, stride=factor) > 0).reshape(self.cascades, -1)
+        return self._derived(("blocks", factor), make)
 
     def occupied_segment(self, a: Tensor, b: Tensor) -> Tensor:
         """Whether any occupied cell lies near each segment a -> b (N,3 field-space endpoints), for any warp:

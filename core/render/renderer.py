@@ -18,8 +18,8 @@ from torch import Tensor
 
 from core.device import synchronize
 from core.errors import UserError
-from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
 from core.render import march_native
+from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
 from core.render.occupancy import OccupancyGrid, default_step
 from core.render.raymarch import (RayPlan, Samples, cat_samples, cube, expand_segments, next_segments,
                                   plan_rays)
@@ -132,10 +132,9 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
     prof, k = opts.profile, opts.seg_steps
     n = o.shape[0]
     native = march_native.usable(o, plan, grid)
-    if native:  # per ray: the next step to march
-        cursor, end = torch.zeros(n, dtype=torch.long, device=dev), plan.n_steps
-    else:  # per ray: the next coarse segment to test
-        cursor, end = torch.zeros(n, dtype=torch.long, device=dev), (plan.n_steps + k - 1) // k
+    # per ray: the next step to march (native) or the next coarse segment to test, and where the ray ends
+    cursor = torch.zeros(n, dtype=torch.long, device=dev)
+    end = plan.n_steps if native else (plan.n_steps + k - 1) // k
     carry = torch.zeros(n, dtype=torch.float64, device=dev)
     tau_stop = -math.log(opts.t_threshold) if opts.t_threshold > 0 else math.inf
     alive = end > 0

@@ -252,8 +252,8 @@ class RepaintTrainer:
                        for im in edited_images(self.scene)]
             if self.cfg.analytic_drift > 0:
                 tint = torch.tensor(DRIFT_TINT, device=self.device).view(1, 3, 1, 1)
-                targets = [t.to(self.device) + self.cfg.analytic_drift * (1.0 - m) * (tint - t.to(self.device))
-                           for t, m in zip(targets, self.masks)]
+                targets = [t.to(self.device) for t in targets]
+                targets = [t + self.cfg.analytic_drift * (1.0 - m) * (tint - t) for t, m in zip(targets, self.masks)]
             return AnalyticGuidance(targets, seed=self.cfg.seed)
         if kind == "sd":
             from core.repaint import build_guidance
