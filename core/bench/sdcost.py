@@ -75,6 +75,10 @@ def run(args: argparse.Namespace) -> int:
     from core.device import describe, get_device, is_cuda, synchronize
     from core.repaint.sds import SDSGuidance
 
+    from core.errors import UserError
+
+    if args.steps < 1 or args.size < 8:
+        raise UserError(f"--steps must be at least 1 and --size at least 8 (got {args.steps}, {args.size})")
     device = get_device(args.device)
     dtype = torch.float16 if is_cuda(device) else torch.float32
     t0 = time.perf_counter()
