@@ -115,6 +115,28 @@ def test_cascades_cover_doubling_cubes():
     assert not bool(grid.is_occupied(torch.tensor([[-1.5, 0.0, 0.0], [0.0, 0.0, 0.0]])).any())
 
 
+def test_reopen_opens_the_cells_a_ray_crosses_for_one_update():
+    """Cells a pruned thin structure sat in come back for one update period: exactly the cells along the
+    queued ray (up to t_end), unchanged density, pruned again by the following update if still empty."""
+    grid = OccupancyGrid(resolution=16, device="cpu", warmup_steps=0)
+    empty = lambda x: torch.zeros(x.shape[0])  # noqa: E731
+    grid.update(0, empty)
+    assert not grid.occupied.any()
+    # along +x through cell centres (y, z in cell 8), from outside the cube; stops at x = 0.3
+    origin, direction = torch.tensor([[-3.0, 0.0625, 0.0625]]), torch.tensor([[1.0, 0.0, 0.0]])
+    assert grid.reopen(origin, direction, torch.tensor([3.3])) == 11  # x cells 0..10 (x < 0.375)
+    assert not grid.occupied.any()  # queued, not yet applied: the marcher's view changes only at updates
+    grid.update(16, empty)
+    occ = grid.occupied[0].view(16, 16, 16)
+    assert occ[:11, 8, 8].all() and int(occ.sum()) == 11
+    assert float(grid.density.abs().max()) == 0.0
+    grid.update(32, empty)
+    assert not grid.occupied.any()
+    # a ray missing the cube queues nothing; a whole ray (t_end = inf) crosses all 16 cells
+    assert grid.reopen(torch.tensor([[-3.0, 5.0, 0.0]]), direction) == 0
+    assert grid.reopen(origin, direction, torch.tensor([math.inf])) == 16
+
+
 def test_state_dict_round_trip_and_mismatch():
     field = SphereField(radius=0.4, sigma=20.0)
     grid = OccupancyGrid(resolution=16, device="cpu")

@@ -225,7 +225,7 @@ def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch
     _, scene = tiny_scene
     spy = _Spy(stage1.render_rays)
     monkeypatch.setattr(stage1, "render_rays", spy)
-    tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
+    tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=256, reopen_error=0.0))
     info = tr.step()
     assert spy.outputs == [("rgb",)]
     assert "feature" not in info and "depth" not in info
@@ -241,7 +241,8 @@ def test_feature_and_depth_losses_act_when_on(tiny_scene, standin_field, monkeyp
     n = len(scene.train)
     target = np.zeros((16, 16, 8), np.float32)  # half resolution, like the compressed cache
     target[..., 0] = 1.0
-    depth = [np.full((32, 32), 4.0, np.float32) for _ in range(n)]  # a constant z-depth of 4 world units
+    # a constant z-depth of 4 world units where the image shows something (nothing to hit elsewhere)
+    depth = [np.where(im[..., 3] > 0, 4.0, np.nan).astype(np.float32) for im in scene.train.images]
     ends = {}
     for weight in (1.0, 1e-6):  # same seed and batches; only the weight of Eq. s1's extra terms differs
         tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=512, lambda_feature=weight, lambda_depth=weight),
@@ -251,12 +252,59 @@ def test_feature_and_depth_losses_act_when_on(tiny_scene, standin_field, monkeyp
         tr.train(steps=30)
         last = [tr.step() for _ in range(3)]
         ends[weight] = (first, {k: np.mean([i[k] for i in last]) for k in ("feature", "depth")})
-    assert set(spy.outputs[0]) == {"rgb", "feature", "depth"}
+    assert set(spy.outputs[0]) == {"rgb", "feature", "depth", "opacity"}  # depth, opacity: for reopening
     (first, on), (_, off) = ends[1.0], ends[1e-6]
     assert on["feature"] < 0.5 * first["feature"] and on["feature"] < 0.5 * off["feature"], (first, on, off)
     assert on["depth"] < 0.5 * off["depth"], (first, on, off)
     # Depth priors are converted to field units with the scene's scale.
     assert float(torch.nanmean(tr.depth)) == pytest.approx(4.0 * scene.norm.scale, rel=1e-5)
+
+
+def test_feature_targets_of_transparent_pixels_are_zero(tiny_scene, standin_field):
+    """Empty space renders a zero feature, so an RGBA pixel's feature target is the teacher's times alpha
+    (the teacher saw the image over white; chasing that feature grew floaters in the background)."""
+    from core.train.stage1 import Stage1Trainer
+
+    _, scene = tiny_scene
+    n = len(scene.train)
+    target = np.ones((32, 32, 4), np.float32)
+    tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096), feature_targets=[target] * n)
+    idx = tr.sample_pixels(4096)
+    alpha = tr.pixels[idx, 3].float() / 255.0
+    tr.gen.manual_seed(tr.cfg.seed)
+    torch.manual_seed(0)
+    tr2 = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096), feature_targets=[target] * n)
+    b = tr2.make_batch()
+    assert (alpha == 0).any() and (alpha == 1).any()
+    assert torch.allclose(b["feature"].float(), alpha[:, None].expand(-1, 4), atol=1e-3)
+
+
+def test_worst_rays_reopen_the_grid_in_front_of_their_surface(tiny_scene, standin_field, monkeypatch):
+    """Each step hands the rays with the largest colour error (above reopen_error, at most reopen_fraction of
+    the batch) to OccupancyGrid.reopen, up to their depth where they hit something, whole where they don't."""
+    from core.train.stage1 import Stage1Trainer
+
+    _, scene = tiny_scene
+    calls = []
+    tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=1000, reopen_fraction=0.01, reopen_error=0.005))
+    monkeypatch.setattr(tr.grid, "reopen", lambda o, d, t: calls.append((o, d, t)))
+    batch = tr.make_batch()
+    rgb = batch["rgb"].clone()
+    rgb[:5] = 1.0 - rgb[:5]  # five rays far off
+    rgb[5:20] = (rgb[5:20] + 0.1).clamp(max=1.0)  # fifteen a little off, three with no room to move
+    rgb[5:20, 0] = torch.where(rgb[5:20, 0] > 0.95, rgb[5:20, 0] - 0.15, rgb[5:20, 0])
+    out = {"rgb": rgb, "opacity": torch.cat([torch.ones(3), torch.zeros(997)]), "depth": torch.full((1000,), 2.0)}
+    err = ((rgb - batch["rgb"]) ** 2).mean(-1)
+    tr._reopen_worst(batch, out)
+    (o, d, t), = calls
+    assert o.shape == (10, 3)  # the batch's worst 1%
+    assert torch.equal(d, batch["dirs"][err.topk(10).indices])
+    hit = out["opacity"][err.topk(10).indices] > 0.5
+    assert (t[hit] == 2.0).all() and torch.isinf(t[~hit]).all()
+    calls.clear()
+    tr.cfg.reopen_error = 10.0  # nothing that bad: nothing reopened
+    tr._reopen_worst(batch, out)
+    assert calls == []
 
 
 def test_sparse_depth_priors_get_extra_rays(tiny_scene, standin_field):

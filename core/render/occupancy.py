@@ -50,6 +50,7 @@ class OccupancyGrid:
         self.eval_chunk = int(eval_chunk)
         self.spread = bool(spread)  # see update()
         self._pending: tuple[list[Tensor], Tensor, int] | None = None
+        self._reopen: Tensor | None = None  # cells queued by reopen() for the next update
         self._seeded = False  # the density holds at least one update (or a checkpoint's)
         n = self.resolution ** 3
         self.density = torch.zeros(self.cascades, n, device=self.device)
@@ -256,7 +257,51 @@ class OccupancyGrid:
         self.density = torch.maximum(self.density * self.decay, fresh)
         self.mean_density = float(self.density[0].mean())
         self.occupied = self.density > self.threshold()
+        if self._reopen is not None:  # open for one period; their density is untouched, so the next
+            self.occupied |= self._reopen  # update prunes them again unless the field has filled them
+            self._reopen = None
         self._version += 1
+
+    @torch.no_grad()
+    def reopen(self, origins: Tensor, dirs: Tensor, t_end: Tensor | None = None) -> int:
+        """Queue every cell that rays (R,3) in field space cross before distance `t_end` (R,; inf = the whole
+        ray) to be occupied from the next update until the one after.
+
+        Why: a structure thinner than a cell (a pole, a wire) can be pruned before the field has learned
+        it, and a pruned cell is never sampled, so the field never does. The trainer reopens the path of
+        the rays it renders worst, giving the field one update period to put density there.
+        Returns the number of distinct cells queued."""
+        from core.render.raymarch import intersect_box
+
+        if origins.shape[0] == 0:
+            return 0
+        o = origins.to(self.device, torch.float32).reshape(-1, 3)
+        d = dirs.to(self.device, torch.float32).reshape(-1, 3)
+        e = torch.full((3,), self.extent, device=self.device)
+        t0, t1 = intersect_box(o, d, -e, e)
+        t0 = t0.clamp_min(0.0)
+        if t_end is not None:
+            t1 = torch.minimum(t1, t_end.to(t1).reshape(-1))
+        ok = t1 > t0
+        if not bool(ok.any()):
+            return 0
+        o, d, t0, t1 = o[ok], d[ok], t0[ok], t1[ok]
+        n = 2 * self.resolution
+        s = torch.linspace(0.0, 1.0, n, device=self.device)
+        # uniform steps for the cube, geometric ones as well for warped / cascaded grids (far cells are big)
+        fr = [s] if self.warp is None and self.cascades == 1 else [s, torch.expm1(s * 6.0) / math.expm1(6.0)]
+        t = torch.cat([t0[:, None] + (t1 - t0)[:, None] * f[None, :] for f in fr], 1)
+        x = self.to_grid((o[:, None, :] + d[:, None, :] * t[..., None]).reshape(-1, 3))
+        x = x[torch.isfinite(x).all(-1) & (x.abs().amax(-1) <= self.cascade_extent(self.cascades - 1))]
+        if self._reopen is None:
+            self._reopen = torch.zeros_like(self.occupied)
+        c = self.cascade_of(x)
+        before = int(self._reopen.sum())
+        for ci in range(self.cascades):
+            sel = x[c == ci]
+            if sel.shape[0]:
+                self._reopen[ci, self._cell_index(sel, ci)] = True
+        return int(self._reopen.sum()) - before
 
     @torch.no_grad()
     def update(self, step: int, density_fn: Callable[[Tensor], Tensor]) -> None:

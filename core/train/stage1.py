@@ -3,12 +3,14 @@ and depth priors when given (paper Eq. s1), with random-pixel batches, Adam and 
 
 Pixels of all training images sit on the device as one flat uint8 tensor, so a batch is one random
 gather. RGBA targets are composited over a random colour per ray and rendered over the same colour,
-which teaches the field transparent empty space. Outputs the losses do not need (feature, depth) are
+which teaches the field transparent empty space; their feature targets are scaled by alpha for the
+same reason. Outputs the losses do not need (feature, depth) are
 never asked from the renderer.
 """
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -58,6 +60,8 @@ class TrainConfig:
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
     grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
+    reopen_fraction: float = 0.01  # once per grid update, the worst-rendered rays (this fraction of the
+    reopen_error: float = 0.04  # batch) reopen their pruned cells, if their squared colour error is above this
     scene_warp: bool = True  # forward / unbounded scenes: NDC / contraction (core.field.contraction)
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
@@ -211,7 +215,8 @@ class Stage1Trainer:
         if not self.cfg.lambda_depth:
             self.depth = self.depth_pixels = None
         self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
-            + (("depth",) if self.depth is not None else ())
+            + (("depth",) if self.depth is not None or self.cfg.reopen_error > 0 else ()) \
+            + (("opacity",) if self.cfg.reopen_error > 0 else ())  # both are per-ray sums made anyway
 
     # -- set-up -----------------------------------------------------------------------------------
     def _make_optimizer(self) -> torch.optim.Optimizer:
@@ -332,7 +337,10 @@ class Stage1Trainer:
         if self.features is not None:
             fidx = self.feat_offsets[img] + _resample_index(u, v, self.widths[img], self.heights[img],
                                                             self.feat_w[img], self.feat_h[img])
-            batch["feature"] = self.features[fidx]
+            feat = self.features[fidx]
+            # empty space renders a zero feature (no background term), so a transparent pixel's target
+            # is zero: the teacher saw it composited over white, and chasing that made floaters
+            batch["feature"] = feat * px[:, 3:4].to(feat.dtype) if self.has_alpha else feat
         if self.depth is not None:
             batch["depth"] = self.depth[idx]
         return batch
@@ -389,6 +397,9 @@ class Stage1Trainer:
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
         total = losses.stage1_loss(color, parts.get("feature"), parts.get("depth"),
                                    self.cfg.lambda_feature, self.cfg.lambda_depth)
+        every = self.cfg.grid_update_every
+        if self.cfg.reopen_error > 0 and self.cfg.reopen_fraction > 0 and self.step_count % every == every - 1:
+            self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
         self.optimizer.zero_grad(set_to_none=True)
         finite = bool(torch.isfinite(total))
@@ -420,6 +431,19 @@ class Stage1Trainer:
             times["render"] = dict(stats.get("time", {}))
             self.last_times = times
         return info
+
+    @torch.no_grad()
+    def _reopen_worst(self, batch: dict, out: dict) -> None:
+        """Reopen the grid cells in front of the surface of the rays rendered worst (OccupancyGrid.reopen):
+        a thin structure pruned before it was learned shows up as a large colour error on its pixels."""
+        err = ((out["rgb"].detach() - batch["rgb"]) ** 2).mean(-1)
+        k = max(1, int(err.shape[0] * self.cfg.reopen_fraction))
+        vals, idx = err.topk(min(k, err.shape[0]))
+        idx = idx[vals > self.cfg.reopen_error]
+        if idx.numel():
+            op, depth = out["opacity"].detach()[idx], out["depth"].detach()[idx]
+            t_end = torch.where(op > 0.5, depth, torch.full_like(depth, math.inf))  # in front of the surface
+            self.grid.reopen(batch["origins"][idx], batch["dirs"][idx], t_end)
 
     def train(self, steps: int | None = None, seconds: float | None = None,
               callback: Callable[[dict], Any] | None = None, stop=None) -> dict | None:
