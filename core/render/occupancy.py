@@ -114,19 +114,25 @@ class OccupancyGrid:
         m = x.abs().amax(dim=-1).clamp_min(1e-30) / self.bound
         return torch.ceil(torch.log2(m)).clamp(0, self.cascades - 1).long()
 
-    def is_occupied(self, x: Tensor) -> Tensor:
-        """Occupancy of the cell holding each point (N,3) -> (N,) bool; points outside every cascade are empty."""
-        x = self.to_grid(x.to(self.device))
+    def _cells(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Cascade (N,) and flat cell index (N,) of grid-space points (N,3), each in the smallest cascade
+        holding it (clamped to the outermost)."""
         c = self.cascade_of(x)
-        inside = (x.abs().amax(dim=-1) <= self.cascade_extent(self.cascades - 1))
         if self.cascades == 1:
-            return self.occupied[0][self._cell_index(x, 0)] & inside
-        out = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+            return c, self._cell_index(x, 0)
+        idx = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         for ci in range(self.cascades):
             sel = (c == ci).nonzero(as_tuple=True)[0]
             if sel.numel():
-                out[sel] = self.occupied[ci][self._cell_index(x[sel], ci)]
-        return out & inside
+                idx[sel] = self._cell_index(x[sel], ci)
+        return c, idx
+
+    def is_occupied(self, x: Tensor) -> Tensor:
+        """Occupancy of the cell holding each point (N,3) -> (N,) bool; points outside every cascade are empty."""
+        x = self.to_grid(x.to(self.device))
+        inside = (x.abs().amax(dim=-1) <= self.cascade_extent(self.cascades - 1))
+        c, idx = self._cells(x)
+        return self.occupied[c, idx] & inside
 
     def _derived(self, key: tuple, make: Callable[[], Tensor]) -> Tensor:
         """A map derived from the current occupancy, made once per update (older ones are dropped)."""
@@ -295,12 +301,8 @@ class OccupancyGrid:
         x = x[torch.isfinite(x).all(-1) & (x.abs().amax(-1) <= self.cascade_extent(self.cascades - 1))]
         if self._reopen is None:
             self._reopen = torch.zeros_like(self.occupied)
-        c = self.cascade_of(x)
         before = int(self._reopen.sum())
-        for ci in range(self.cascades):
-            sel = x[c == ci]
-            if sel.shape[0]:
-                self._reopen[ci, self._cell_index(sel, ci)] = True
+        self._reopen[self._cells(x)] = True
         return int(self._reopen.sum()) - before
 
     @torch.no_grad()

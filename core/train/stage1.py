@@ -4,8 +4,8 @@ and depth priors when given (paper Eq. s1), with random-pixel batches, Adam and 
 Pixels of all training images sit on the device as one flat uint8 tensor, so a batch is one random
 gather. RGBA targets are composited over a random colour per ray and rendered over the same colour,
 which teaches the field transparent empty space; their feature targets are scaled by alpha for the
-same reason. Outputs the losses do not need (feature, depth) are
-never asked from the renderer.
+same reason. Outputs that neither the losses nor the grid's reopening need are never asked from the
+renderer.
 """
 from __future__ import annotations
 
@@ -60,8 +60,10 @@ class TrainConfig:
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
     grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
-    reopen_fraction: float = 0.01  # once per grid update, the worst-rendered rays (this fraction of the
-    reopen_error: float = 0.04  # batch) reopen their pruned cells, if their squared colour error is above this
+    # once per grid update the worst-rendered rays of the batch reopen the pruned cells in front of their
+    # surface (a thin structure pruned before it was learned; OccupancyGrid.reopen)
+    reopen_fraction: float = 0.01  # at most this fraction of the batch's rays
+    reopen_error: float = 0.04  # only rays whose mean squared colour error is above this (0 = off)
     scene_warp: bool = True  # forward / unbounded scenes: NDC / contraction (core.field.contraction)
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
