@@ -311,20 +311,26 @@ class EditorApp:
         w, h = self.window.framebuffer_size()
         panel_w = min(PANEL_WIDTH, max(w // 3, 200))
         self._draw_viewport(w - panel_w, h)
+        self._request_view()  # before the panels and the draw: the worker starts on a camera move at once
         self._draw_panels(w - panel_w, panel_w, h)
-        if self.camera is not None and self.state.scene_info.get("loaded"):
-            # Features ride along while the patch tool is on, so a patch selects from the frame on screen.
-            want_feature = self.state.view_mode == "feature" or self.state.tool == "select"
-            outputs = ("rgb", "depth") + (("feature",) if want_feature else ())
-            key = (self.camera.state(), self.view_size, outputs)
-            if key != self.requested_key:
-                self.requested_key = key
-                self._active = True
-                self.events.append((time.perf_counter(), "request", key))
-                self.worker.request_render(self.camera.cameras(*self.view_size), key, outputs)
+        self._request_view()  # a panel changed the view (snap, reset, field of view, view mode, tool)
         shot = self.window.end_frame(capture=capture)
         self.frame_work_ms = (time.perf_counter() - self._frame_started) * 1000.0
         return shot
+
+    def _request_view(self) -> None:
+        """Ask the worker for the current view when it differs from the last request."""
+        if self.camera is None or not self.state.scene_info.get("loaded"):
+            return
+        # Features ride along while the patch tool is on, so a patch selects from the frame on screen.
+        want_feature = self.state.view_mode == "feature" or self.state.tool == "select"
+        outputs = ("rgb", "depth") + (("feature",) if want_feature else ())
+        key = (self.camera.state(), self.view_size, outputs)
+        if key != self.requested_key:
+            self.requested_key = key
+            self._active = True
+            self.events.append((time.perf_counter(), "request", key))
+            self.worker.request_render(self.camera.cameras(*self.view_size), key, outputs)
 
     def close(self) -> None:
         self.worker.stop()

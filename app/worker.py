@@ -205,9 +205,15 @@ class Worker:
         scale = self._next_scale(req)
         if scale is None:
             return False
+        # The first frame of a new view is short by design (the controller's scale) and is never cancelled by a
+        # newer view: during a drag, requests come every UI frame, faster than renders, and cancelling each for
+        # the next left the viewport frozen until the mouse stopped. Refinements of a resting view are long: a
+        # move or a command cancels them.
+        first = self._served[0] != req.serial
+        cancel = self._stop.is_set if first else self._stale(req.serial)
         t0 = time.perf_counter()
         self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
-        data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=self._stale(req.serial))
+        data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
         self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request

@@ -1,6 +1,6 @@
 """`repaint-nerf bench viewport`: the editor in a real window on the demo scene while it trains, driven by
-scripted input; reports UI frame time p50/p99, camera move -> first new frame, patch release -> mask on
-screen, and slider -> mask (in frames). Starts its own Xvfb when there is no DISPLAY."""
+scripted input; reports UI frame time p50/p99, camera move -> first new frame, frames per second and view
+age during a continuous drag, patch release -> mask on screen, and slider -> mask (in frames). Starts its own Xvfb when there is no DISPLAY."""
 from __future__ import annotations
 
 import argparse
@@ -20,6 +20,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=20.0, help="length of the scripted orbit phase")
     p.add_argument("--train-seconds", type=float, default=60.0,
                    help="seconds the scene trains in the window (camera at rest) before the measurements")
+    p.add_argument("--drag-seconds", type=float, default=5.0,
+                   help="length of the continuous-drag phase (the camera moves every UI frame)")
     p.add_argument("--width", type=int, default=1280)
     p.add_argument("--height", type=int, default=800)
 
@@ -88,6 +90,29 @@ def _select_ms(app, patch, drag_s: float = PATCH_DRAG_S) -> float | None:
     return (time.perf_counter() - t_rel) * 1000 if app.state.has_selection else None
 
 
+def _drag(app, seconds: float) -> dict:
+    """A continuous orbit, as a mouse drag: the camera moves every UI frame. Reports the frames the viewport
+    shows per second, how old the view in each is (from the camera state's first frame to the frame that shows
+    it), and the render scale that holds that rate."""
+    requested: dict = {}
+    ages, scales = [], []
+    shown = app.frames_shown
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        app.camera.orbit(3, 0)
+        app.window.wake()
+        t = time.perf_counter()
+        app.frame()
+        requested.setdefault(app.requested_key, t)
+        if app.shown_key in requested and app.last_frame is not None:
+            ages.append((time.perf_counter() - requested.pop(app.shown_key)) * 1000)
+            scales.append(app.last_frame.scale)
+    frames = app.frames_shown - shown
+    return {"drag_seconds": seconds, "drag_frames_per_s": frames / seconds,
+            "drag_view_age_ms_p50": _pct(ages, 50), "drag_view_age_ms_p99": _pct(ages, 99),
+            "drag_render_scale_p50": _pct(scales, 50)}
+
+
 def _bench(args, engine) -> int:
     from app.editor import EditorApp
     from app.window import Window
@@ -132,6 +157,7 @@ def _bench(args, engine) -> int:
                       ui_frames=len(frame_ms), move_to_first_frame_ms_p50=_pct(move_ms, 50),
                       move_to_first_frame_ms_p99=_pct(move_ms, 99), moves=len(move_ms),
                       training_step=app.state.last_status.get("step"))
+        result.update(_drag(app, args.drag_seconds))
         # Patch release -> mask on screen. A user turns the patch tool on, then presses and drags: the view
         # re-renders with features meanwhile (the editor asks for them while the tool is on), so the release
         # finds this view's feature map (a release on a view never rendered with features waits for a 256-px

@@ -1,0 +1,69 @@
+"""The worker's render scheduling: what a newer view cancels and what it does not (no model needed)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from app.worker import Frame, Worker
+
+
+class SlowEngine:
+    """Renders take ~100 ms in 5 ms rounds and honour `cancel` between rounds, like the real renderer."""
+
+    def __init__(self) -> None:
+        self.log: list[tuple[tuple, float, str]] = []
+        self.current: tuple | None = None
+
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+        for _ in range(20):
+            if cancel is not None and cancel():
+                self.log.append((cameras, scale, "cancelled"))
+                return None
+            time.sleep(0.005)
+        self.log.append((cameras, scale, "done"))
+        return {"rgb": np.zeros((2, 2, 3), np.float32)}
+
+
+def _frames(worker: Worker, until, timeout: float = 5.0) -> list[Frame]:
+    frames: list[Frame] = []
+    t0 = time.perf_counter()
+    while not until(frames) and time.perf_counter() - t0 < timeout:
+        frames += [m for m in worker.poll() if isinstance(m, Frame)]
+        time.sleep(0.005)
+    return frames
+
+
+def test_a_drag_shows_frames_while_the_camera_keeps_moving():
+    """Requests every 20 ms, faster than a 100 ms render: each first frame of a view finishes and is shown."""
+    engine = SlowEngine()
+    worker = Worker(engine, rest_s=10.0).start()
+    try:
+        t0 = time.perf_counter()
+        i = 0
+        while time.perf_counter() - t0 < 0.5:
+            worker.request_render(("view", i), key=(i,))
+            i += 1
+            time.sleep(0.02)
+        frames = _frames(worker, lambda fs: any(f.key == (i - 1,) for f in fs))
+    finally:
+        worker.stop()
+    assert len(frames) >= 3, frames
+    assert frames[-1].key == (i - 1,)  # the newest view is served once the drag ends
+    assert not any(what == "cancelled" for _, _, what in engine.log)
+
+
+def test_a_move_cancels_the_refinement_of_a_resting_view():
+    engine = SlowEngine()
+    worker = Worker(engine, rest_s=0.0).start()
+    try:
+        worker.request_render("a", key=("a",))
+        _frames(worker, lambda fs: len(fs) >= 1)  # the first frame, at the controller's scale
+        time.sleep(0.03)  # now refining at a finer scale
+        worker.request_render("b", key=("b",))
+        frames = _frames(worker, lambda fs: any(f.key == ("b",) for f in fs))
+    finally:
+        worker.stop()
+    first_scale = engine.log[0][1]
+    assert any(c == "a" and s > first_scale and what == "cancelled" for c, s, what in engine.log), engine.log
+    assert frames and frames[0].key == ("b",)
