@@ -27,6 +27,7 @@ from app.worker import Crashed, Frame, Reply, Status, Worker
 
 PANEL_WIDTH = 400
 MODEL_CHANGING = {"undo", "redo", "cancel", "load"}
+STALE_REDRAW_S = 0.1  # while a moved camera's view renders, the unchanged screen is redrawn at this period
 
 
 class EditorApp:
@@ -53,6 +54,8 @@ class EditorApp:
         self.worker.notify = window.wake
         self.shown_key: tuple | None = None
         self.frames_shown = 0
+        self.frames_presented = 0  # UI frames drawn to the screen (see `_worth_drawing`)
+        self._last_present = 0.0
         self.last_frame: Frame | None = None
         self.drag_start: tuple[float, float] | None = None
         self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
@@ -314,9 +317,22 @@ class EditorApp:
         self._request_view()  # before the panels and the draw: the worker starts on a camera move at once
         self._draw_panels(w - panel_w, panel_w, h)
         self._request_view()  # a panel changed the view (snap, reset, field of view, view mode, tool)
-        shot = self.window.end_frame(capture=capture)
+        present = self._worth_drawing(msgs)
+        shot = self.window.end_frame(capture=capture, present=present)
         self.frame_work_ms = (time.perf_counter() - self._frame_started) * 1000.0
+        if present:
+            self._last_present = self._frame_started
+            self.frames_presented += 1
         return shot
+
+    def _worth_drawing(self, msgs: list) -> bool:
+        """False for a frame that would show the same old picture while the worker renders a moved camera's
+        view: on a software rasterizer drawing it costs both cores 10-15 ms, taken from that very render. Such
+        frames still take input; the screen is redrawn at least every STALE_REDRAW_S."""
+        awaiting = self.requested_key is not None and self.requested_key != self.shown_key
+        return (not awaiting or any(not isinstance(m, Status) for m in msgs) or self.drag_start is not None
+                or imgui.is_any_item_active() or imgui.get_io().want_text_input
+                or self._frame_started - self._last_present >= STALE_REDRAW_S)
 
     def _request_view(self) -> None:
         """Ask the worker for the current view when it differs from the last request."""

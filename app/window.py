@@ -112,9 +112,12 @@ class Window:
             fn(io)
         imgui.new_frame()
 
-    def end_frame(self, capture: bool = False) -> np.ndarray | None:
-        """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3)."""
+    def end_frame(self, capture: bool = False, present: bool = True) -> np.ndarray | None:
+        """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3). With
+        `present` false the frame ends without drawing: the screen keeps the last picture."""
         imgui.render()
+        if not (present or capture):
+            return None
         w, h = self.framebuffer_size()
         self.ctx.screen.use()
         self.ctx.viewport = (0, 0, w, h)

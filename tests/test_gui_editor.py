@@ -32,6 +32,7 @@ class AnalyticEngine:
         self.edit_target = None
         self.fail_render_after = fail_render_after
         self.renders = 0
+        self.render_delay = 0.0
 
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
@@ -65,6 +66,7 @@ class AnalyticEngine:
 
     def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
         self.renders += 1
+        time.sleep(self.render_delay)
         if self.fail_render_after is not None and self.renders > self.fail_render_after:
             raise RuntimeError("simulated renderer failure")
         cams = cameras.scaled(scale)
@@ -187,8 +189,9 @@ def drag(app, p0, p1, steps=6, **mods):
 
 
 def full_frame(app):
+    """The newest request is on screen at full resolution (an older frame of an equal view does not count)."""
     f = app.last_frame
-    return f is not None and f.final and f.key == app.requested_key
+    return f is not None and f.final and f.key == app.requested_key and f.serial == app.worker._serial
 
 
 def redness(px):
@@ -340,3 +343,31 @@ def test_an_idle_editor_sleeps_and_a_result_wakes_it(editor):
     assert time.perf_counter() - t0 < 0.5
     editor.idle_fps = 4.0
     editor.worker.set_training(True)
+
+
+def test_a_moved_view_is_not_redrawn_stale_while_it_renders(editor):
+    """After a camera move the old picture is not drawn again at every frame while the new one renders (that
+    draw competes with the render for the CPU), but at least every STALE_REDRAW_S; its arrival is drawn."""
+    from app.editor import STALE_REDRAW_S
+
+    run_until(editor, lambda: full_frame(editor))
+    editor.engine.render_delay = 0.5
+    try:
+        editor.camera.orbit(30, 0)
+        presented, n, t0 = editor.frames_presented, 0, time.perf_counter()
+        x0 = editor.image_origin[0] + editor.view_size[0] + 40  # over the panels: input that keeps frames coming
+        while n == 0 or editor.shown_key != editor.requested_key:
+            editor.window.inject(mouse(x0 + n % 2, 300))
+            editor.frame()
+            n += 1
+            assert time.perf_counter() - t0 < 10
+        waited = time.perf_counter() - t0
+        drawn = editor.frames_presented - presented
+        assert drawn < n / 2  # most frames that would show the old picture were skipped
+        assert drawn >= waited / (STALE_REDRAW_S + 1.0 / editor.max_fps) - 1  # but not for longer than the period
+        last = editor.frames_presented
+        editor.frame(capture=True)  # a screenshot is always drawn
+        assert editor.frames_presented == last + 1
+    finally:
+        editor.engine.render_delay = 0.0
+    run_until(editor, lambda: full_frame(editor))
