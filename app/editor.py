@@ -56,6 +56,7 @@ class EditorApp:
         self.frames_shown = 0
         self.frames_presented = 0  # UI frames drawn to the screen (see `_worth_drawing`)
         self._last_present = 0.0
+        self._covered = False
         self.last_frame: Frame | None = None
         self.drag_start: tuple[float, float] | None = None
         self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
@@ -237,6 +238,7 @@ class EditorApp:
         pos = imgui.get_cursor_screen_pos()
         self.image_origin = (pos.x, pos.y)
         tex = self.viewport.draw(self.view_size, self.state.view_mode, self.state.threshold)
+        self._covered = tex is not None  # the image and the opaque panel window cover the whole screen
         if tex is not None:
             imgui.image(imgui.ImTextureRef(tex.glo), imgui.ImVec2(*self.view_size))
         else:
@@ -318,7 +320,7 @@ class EditorApp:
         self._draw_panels(w - panel_w, panel_w, h)
         self._request_view()  # a panel changed the view (snap, reset, field of view, view mode, tool)
         present = self._worth_drawing(msgs)
-        shot = self.window.end_frame(capture=capture, present=present)
+        shot = self.window.end_frame(capture=capture, present=present, clear=not self._covered)
         self.frame_work_ms = (time.perf_counter() - self._frame_started) * 1000.0
         if present:
             self._last_present = self._frame_started

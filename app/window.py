@@ -112,16 +112,18 @@ class Window:
             fn(io)
         imgui.new_frame()
 
-    def end_frame(self, capture: bool = False, present: bool = True) -> np.ndarray | None:
+    def end_frame(self, capture: bool = False, present: bool = True, clear: bool = True) -> np.ndarray | None:
         """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3). With
-        `present` false the frame ends without drawing: the screen keeps the last picture."""
+        `present` false the frame ends without drawing: the screen keeps the last picture. `clear` false
+        when opaque windows cover the whole screen (a full-screen pass less on a software rasterizer)."""
         imgui.render()
         if not (present or capture):
             return None
         w, h = self.framebuffer_size()
         self.ctx.screen.use()
         self.ctx.viewport = (0, 0, w, h)
-        self.ctx.clear(0.1, 0.1, 0.12, 1.0)
+        if clear:
+            self.ctx.clear(0.1, 0.1, 0.12, 1.0)
         imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
         shot = self._read_screen(w, h) if capture else None
         glfw.swap_buffers(self.handle)
