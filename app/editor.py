@@ -272,11 +272,14 @@ class EditorApp:
             if imgui.button("Dismiss"):
                 s.error = None
             imgui.separator()
+        # Fields leave room for their labels on the right at any panel width (imgui's default is a fixed share).
+        imgui.push_item_width(-min(9.0 * imgui.get_font_size(), 0.4 * width))
         for panel in (scene_panel, view_panel, selection_panel, repaint_panel):
             try:
                 panel.draw(self)
             except Exception:  # a bug in one panel must not take the editor down
                 s.error = f"panel {panel.__name__}:\n{traceback.format_exc()}"
+        imgui.pop_item_width()
         imgui.separator()
         for kind, text in s.messages:
             color = imgui.ImVec4(1, 0.5, 0.4, 1) if kind == "error" else imgui.ImVec4(0.8, 0.8, 0.8, 1)
