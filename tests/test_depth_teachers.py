@@ -111,17 +111,10 @@ def test_triangulation_with_known_poses_matches_ground_truth(scene_factory):
 
 @pytest.fixture(scope="module")
 def tiny_depth_onnx(tmp_path_factory):
-    torch.manual_seed(0)
+    from tiny_onnx import export_depth_net
+
     # a fixed "network": relative inverse depth = 0.2 + mean intensity (channels averaged)
-    net = torch.nn.Conv2d(3, 1, 1)
-    with torch.no_grad():
-        net.weight.fill_(1.0 / 3.0)
-        net.bias.fill_(0.2)
-    path = tmp_path_factory.mktemp("depth") / "midas_tiny.onnx"
-    torch.onnx.export(net.eval(), (torch.zeros(1, 3, 16, 16),), str(path), dynamo=False,
-                      input_names=["x"], output_names=["depth"],
-                      dynamic_axes={"x": {2: "h", 3: "w"}, "depth": {2: "h", 3: "w"}})
-    return path
+    return export_depth_net(tmp_path_factory.mktemp("depth") / "midas_tiny.onnx")
 
 
 def test_onnx_depth_aligned_to_sparse_points(tiny_depth_onnx):

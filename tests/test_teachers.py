@@ -137,14 +137,9 @@ def test_feature_cache_computes_once_and_serves_targets(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_onnx(tmp_path_factory):
-    torch.manual_seed(0)
-    net = torch.nn.Sequential(torch.nn.Conv2d(3, 8, 3, stride=2, padding=1), torch.nn.ReLU(),
-                              torch.nn.Conv2d(8, 6, 3, padding=1)).eval()
-    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
-    torch.onnx.export(net, (torch.zeros(1, 3, 32, 32),), str(path), dynamo=False, input_names=["image"],
-                      output_names=["features"],
-                      dynamic_axes={"image": {2: "h", 3: "w"}, "features": {2: "fh", 3: "fw"}})
-    return net, path
+    from tiny_onnx import export_feature_net
+
+    return export_feature_net(tmp_path_factory.mktemp("onnx") / "tiny.onnx", dim=6)
 
 
 @pytest.mark.parametrize("input_size", [None, (24, 40)])

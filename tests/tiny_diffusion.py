@@ -77,17 +77,18 @@ def cached(kind: str, tmp_path_factory) -> Path:
     return _CACHE[kind]
 
 
-def make_tiny_clip(root: Path, seed: int = 0) -> Path:
-    """A transformers CLIP folder (config.json, weights, tokenizer, preprocessor_config.json); 32 px images."""
+def make_tiny_clip(root: Path, seed: int = 0, projection_dim: int = 8) -> Path:
+    """A transformers CLIP folder (config.json, weights, tokenizer, preprocessor_config.json); 32 px images,
+    `projection_dim`-dim embeddings."""
     from transformers import CLIPConfig, CLIPModel
 
     torch.manual_seed(seed)
     out = root / "tiny-clip"
     tokenizer = tiny_tokenizer(root / "_clip_tok_src")
-    text = _text_config_kwargs(len(tokenizer.get_vocab()))
+    text = {**_text_config_kwargs(len(tokenizer.get_vocab())), "projection_dim": projection_dim}
     vision = dict(image_size=32, patch_size=8, hidden_size=16, intermediate_size=32, num_hidden_layers=1,
-                  num_attention_heads=2, projection_dim=8)
-    model = CLIPModel(CLIPConfig(text_config=text, vision_config=vision, projection_dim=8))
+                  num_attention_heads=2, projection_dim=projection_dim)
+    model = CLIPModel(CLIPConfig(text_config=text, vision_config=vision, projection_dim=projection_dim))
     model.save_pretrained(out)
     tokenizer.save_pretrained(out)
     (out / "preprocessor_config.json").write_text(json.dumps({
