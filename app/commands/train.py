@@ -31,6 +31,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-features", action="store_true",
                    help="skip the semantic feature field (faster; the workspace then cannot be selected in)")
     p.add_argument("--no-depth", action="store_true", help="skip the sparse depth priors")
+    p.add_argument("--feature-model", default=None, metavar="PATH",
+                   help="ONNX dense feature teacher (LSeg, CLIP-dense, DINO), or 'default' for the built-in one "
+                        "(default: the workspace's choice, else $REPAINT_NERF_FEATURE_MODEL, else built-in)")
+    p.add_argument("--feature-size", default=None, metavar="WxH",
+                   help="the feature model's input size in pixels (default: each image's own size)")
+    p.add_argument("--feature-norm", default=None, choices=("imagenet", "clip"),
+                   help="the feature model's input mean/std (default imagenet; clip for CLIP-space models)")
+    p.add_argument("--depth-model", default=None, metavar="PATH",
+                   help="ONNX monocular depth model (MiDaS-style) aligned to the sparse depth, or 'none' "
+                        "(default: the workspace's choice, else $REPAINT_NERF_DEPTH_MODEL, else sparse only)")
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds between checkpoints (0 = at the end)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -42,6 +52,34 @@ def _positive(name: str, value, allow_none=True):
         return
     if value is None or not value > 0:
         raise UserError(f"{name} must be positive, got {value}")
+
+
+def parse_size(text: str | None, flag: str = "--feature-size") -> tuple[int, int] | None:
+    """'WxH' -> (H, W) pixels (the order the teachers take); malformed or non-positive is a UserError."""
+    import re
+
+    from core.errors import UserError
+
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise UserError(f"{flag} '{text}' is not WIDTHxHEIGHT in positive pixels",
+                        hint=f"give the model's input size, e.g. {flag} 384x384")
+    return int(m.group(2)), int(m.group(1))
+
+
+def check_model_flags(args: argparse.Namespace) -> None:
+    """Fail on a missing --feature-model / --depth-model file before any workspace is touched."""
+    from core.teachers._onnx import resolve_model
+    from core.teachers.depth_onnx import ENV_DEPTH_MODEL
+    from core.teachers.feature_onnx import ENV_FEATURE_MODEL
+    from core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
+
+    if args.feature_model and args.feature_model != DEFAULT_FEATURE and not args.no_features:
+        resolve_model(args.feature_model, ENV_FEATURE_MODEL, "--feature-model", "feature")
+    if args.depth_model and args.depth_model != NO_DEPTH_MODEL and not args.no_depth:
+        resolve_model(args.depth_model, ENV_DEPTH_MODEL, "--depth-model", "depth")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -57,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
     for name in ("--steps", "--seconds", "--rays", "--lr", "--max-samples"):
         _positive(name, getattr(args, name[2:].replace("-", "_")))
     seconds = args.seconds if args.seconds is not None or args.steps is not None else 120.0
+    feature_size = parse_size(args.feature_size)
+    check_model_flags(args)
 
     scene_key = str(scene_path.resolve())
     ws = Workspace.open_or_create(args.workspace)
@@ -77,8 +117,9 @@ def run(args: argparse.Namespace) -> int:
     from core.teachers.stage1_targets import depth_priors, feature_targets
 
     notes: list[str] = []
-    features = None if args.no_features else feature_targets(scene, ws)  # paper Eq. s1: the feature field
-    depth = None if args.no_depth else depth_priors(scene, ws, notes)
+    features = None if args.no_features else feature_targets(  # paper Eq. s1: the feature field
+        scene, ws, model=args.feature_model, input_size=feature_size, norm=args.feature_norm, notes=notes)
+    depth = None if args.no_depth else depth_priors(scene, ws, notes, model=args.depth_model)
     for note in notes:
         print(note, file=sys.stderr)
     trainer = Stage1Trainer(scene, ws, cfg, device=args.device, feature_targets=features, depth_priors=depth)

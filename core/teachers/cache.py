@@ -94,14 +94,11 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
     """
     if not images:
         raise WorkspaceError("no training images to compute teacher features for", folder)
-    folder = Path(folder) / teacher_key(teacher)
     hashes = [image_hash(check_image(im)) for im in images]
     n = len(images)
-    fit_idx = sorted(set(np.linspace(0, n - 1, min(n, max(1, fit_images))).round().astype(int).tolist()))
-    fit_id = hashlib.sha1(json.dumps({"v": FORMAT_VERSION, "dims": dims, "scale": scale, "seed": seed,
-                                      "spi": samples_per_image, "fit": [hashes[i] for i in fit_idx]}
-                                     ).encode()).hexdigest()[:12]
-    basis_file = folder / f"basis-{fit_id}.safetensors"
+    fit_idx = _fit_indices(n, fit_images)
+    basis_file = _basis_file(hashes, fit_idx, teacher, folder, dims, scale, samples_per_image, seed)
+    folder, fit_id = basis_file.parent, basis_file.stem.removeprefix("basis-")
     code_dir = folder / fit_id
     files = [code_dir / f"{h}.safetensors" for h in hashes]
     computed: dict[int, np.ndarray] = {}
@@ -142,6 +139,32 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
         codes.append(torch.from_numpy(np.ascontiguousarray(c)))
         sizes.append((int(rgb.shape[0]), int(rgb.shape[1])))
     return FeatureStore(codec, codes, sizes, files)
+
+
+def stored_codec(images: Sequence[np.ndarray], teacher: FeatureTeacher, folder: str | Path, dims: int = 12,
+                 scale: float = 1.0, fit_images: int = 16, samples_per_image: int = 8192,
+                 seed: int = 0) -> PCACodec | None:
+    """The PCA basis `build_feature_store` fitted for these images and settings, read from `folder`
+    without loading every image's codes (text queries project through it); None when not cached."""
+    if not images:
+        return None
+    fit_idx = _fit_indices(len(images), fit_images)
+    hashes = {i: image_hash(check_image(images[i])) for i in fit_idx}
+    return _load_codec(_basis_file(hashes, fit_idx, teacher, folder, dims, scale, samples_per_image, seed))
+
+
+def _fit_indices(n: int, fit_images: int) -> list[int]:
+    """Evenly spaced indices of the images the PCA basis is fitted on."""
+    return sorted(set(np.linspace(0, n - 1, min(n, max(1, fit_images))).round().astype(int).tolist()))
+
+
+def _basis_file(hashes, fit_idx: list[int], teacher: FeatureTeacher, folder: str | Path, dims: int,
+                scale: float, samples_per_image: int, seed: int) -> Path:
+    """Where the basis of these settings lives: <folder>/<teacher key>/basis-<fit id>.safetensors."""
+    fit_id = hashlib.sha1(json.dumps({"v": FORMAT_VERSION, "dims": dims, "scale": scale, "seed": seed,
+                                      "spi": samples_per_image, "fit": [hashes[i] for i in fit_idx]}
+                                     ).encode()).hexdigest()[:12]
+    return Path(folder) / teacher_key(teacher) / f"basis-{fit_id}.safetensors"
 
 
 def _load_codec(path: Path) -> PCACodec | None:

@@ -1,32 +1,255 @@
-"""What stage 1 distils besides colour (paper Eq. s1): default-teacher feature codes and sparse depth priors
-of a scene's training images, computed once and cached in the workspace. The editor and `repaint-nerf train`
-both call these, so a workspace from either can be selected in."""
+"""What stage 1 distils besides colour (paper Eq. s1): teacher feature codes and depth priors of a scene's
+training images, computed once and cached in the workspace. The editor and `repaint-nerf train` both call
+these, so a workspace from either can be selected in.
+
+Which teachers: an explicit model (a `train` flag), else the workspace's saved choice, else the
+environment ($REPAINT_NERF_FEATURE_MODEL / $REPAINT_NERF_DEPTH_MODEL, or features.onnx / depth.onnx under
+$REPAINT_NERF_MODELS), else the weight-free default feature teacher and sparse depth only. The choice is
+saved in settings.json, so re-opening a workspace distils (and reads the cache of) the same teachers.
+"""
 from __future__ import annotations
 
-from core.errors import UserError
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from core.errors import ModelNotFoundError, UserError, WorkspaceError
 
 DEPTH_CACHE = "depth_priors.safetensors"
 FEATURE_DIMS = 12
+FEATURE_SETTING = "feature_model"  # null: the default teacher; else {"path", "input_size", "norm"}
+DEPTH_SETTING = "depth_model"      # null: sparse priors only; else the ONNX file's path
+DEFAULT_FEATURE = "default"        # `--feature-model default`: back to the built-in teacher
+NO_DEPTH_MODEL = "none"            # `--depth-model none`: sparse priors only
+FEATURE_NORMS = ("imagenet", "clip")
+ROOT_ENV = "REPAINT_NERF_MODELS"
 
 
-def feature_targets(scene, ws, dims: int = FEATURE_DIMS):
-    """Default-teacher feature codes of the training images (cached under the workspace's teachers/)."""
-    from core.teachers.cache import build_feature_store
+@dataclass(frozen=True)
+class FeatureModel:
+    """A workspace's feature teacher: an ONNX file with its input size (H, W) and normalisation, or the
+    default teacher (path None)."""
+
+    path: str | None = None
+    input_size: tuple[int, int] | None = None
+    norm: str = "imagenet"
+
+    def to_setting(self) -> dict | None:
+        """The settings.json value (None for the default teacher)."""
+        if self.path is None:
+            return None
+        return {"path": self.path, "input_size": None if self.input_size is None else list(self.input_size),
+                "norm": self.norm}
+
+    @staticmethod
+    def from_setting(value, where: Path) -> "FeatureModel":
+        """Read the settings.json value back; a malformed one is a WorkspaceError naming the file."""
+        if value is None:
+            return FeatureModel()
+        try:
+            size = value.get("input_size")
+            size = None if size is None else (int(size[0]), int(size[1]))
+            return FeatureModel(str(value["path"]), size, check_norm(value.get("norm", "imagenet")))
+        except (AttributeError, KeyError, TypeError, ValueError, IndexError, UserError):
+            raise WorkspaceError(f"settings.json '{FEATURE_SETTING}' is not a feature model record ({value!r})",
+                                 where, hint="fix it, or choose again with repaint-nerf train --feature-model "
+                                             "PATH.onnx (or --feature-model default)") from None
+
+    @property
+    def label(self) -> str:
+        return DEFAULT_FEATURE if self.path is None else Path(self.path).name
+
+
+def check_norm(norm: str) -> str:
+    """The name of a known input normalisation (imagenet or clip), else a UserError."""
+    if norm not in FEATURE_NORMS:
+        raise UserError(f"unknown feature normalisation {norm!r}", hint=f"use one of: {', '.join(FEATURE_NORMS)}")
+    return norm
+
+
+def norm_constants(norm: str) -> tuple[tuple, tuple]:
+    """(mean, std) of a normalisation: ImageNet's, or CLIP's (core.models.clip) for CLIP-space models."""
+    from core.teachers.feature_onnx import IMAGENET_MEAN, IMAGENET_STD
+
+    if check_norm(norm) == "clip":
+        from core.models.clip import CLIP_MEAN, CLIP_STD
+
+        return CLIP_MEAN, CLIP_STD
+    return IMAGENET_MEAN, IMAGENET_STD
+
+
+def _trained(ws) -> bool:
+    """Whether the workspace already holds a field (a checkpoint or a version)."""
+    return any(Path(ws.checkpoints_dir).glob("*.safetensors")) or ws.current_version is not None
+
+
+def _env_model(env: str, root_file: str) -> str | None:
+    """A model path from `env`, else `root_file` under $REPAINT_NERF_MODELS when it exists."""
+    if os.environ.get(env):
+        return os.environ[env]
+    root = os.environ.get(ROOT_ENV)
+    if root and (Path(root).expanduser() / root_file).is_file():
+        return str(Path(root).expanduser() / root_file)
+    return None
+
+
+def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, int] | None = None,
+                         norm: str | None = None) -> tuple[FeatureModel, str]:
+    """(choice, source): `model` ('default' or a path) > the workspace's saved choice > the environment >
+    the default teacher. `input_size` / `norm` override those of the chosen ONNX model. A workspace trained
+    before choices were saved keeps the default teacher it was trained with."""
+    from core.teachers.feature_onnx import ENV_FEATURE_MODEL
+
+    settings = ws.settings
+    if model:
+        choice = FeatureModel() if model == DEFAULT_FEATURE else FeatureModel(str(model)), "flag"
+    elif FEATURE_SETTING in settings:
+        choice = FeatureModel.from_setting(settings[FEATURE_SETTING], ws.root / "settings.json"), "setting"
+    elif _trained(ws) or not _env_model(ENV_FEATURE_MODEL, "features.onnx"):
+        choice = FeatureModel(), "default"
+    else:
+        choice = FeatureModel(_env_model(ENV_FEATURE_MODEL, "features.onnx")), "env"
+    fm, source = choice
+    if (input_size is not None or norm is not None) and fm.path is None:
+        raise UserError("--feature-size and --feature-norm describe an ONNX feature model, and none is chosen",
+                        hint="pass --feature-model PATH.onnx too (or set REPAINT_NERF_FEATURE_MODEL)")
+    if fm.path is not None:
+        fm = FeatureModel(fm.path, input_size if input_size is not None else fm.input_size,
+                          check_norm(norm if norm is not None else fm.norm))
+    return fm, source
+
+
+def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
+    """The teacher of a choice; a missing or broken model is a ModelNotFoundError naming what to fix."""
     from core.teachers.feature_default import DefaultFeatureTeacher
+    from core.teachers.feature_onnx import OnnxFeatureTeacher
 
-    teacher = DefaultFeatureTeacher()
+    if fm.path is None:
+        return DefaultFeatureTeacher()
+    mean, std = norm_constants(fm.norm)
+    try:
+        return OnnxFeatureTeacher(fm.path, input_size=fm.input_size, mean=mean, std=std)
+    except ModelNotFoundError as exc:
+        if source != "setting":
+            raise
+        raise ModelNotFoundError(f"the workspace's feature model (settings.json '{FEATURE_SETTING}') cannot be "
+                                 f"used: {str(exc).splitlines()[0]}",
+                                 hint="move the file back, or choose again: repaint-nerf train SCENE --workspace "
+                                      "WS --feature-model PATH.onnx (or --feature-model default)") from exc
+
+
+def workspace_feature_teacher(ws):
+    """The feature teacher a workspace was trained with (its saved choice), for queries against its field."""
+    return make_feature_teacher(*choose_feature_model(ws))
+
+
+def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = None,
+                    input_size: tuple[int, int] | None = None, norm: str | None = None,
+                    notes: list | None = None):
+    """Teacher feature codes of the training images (cached under the workspace's teachers/); the chosen
+    teacher is saved in the settings only once its features are computed."""
+    from core.teachers.cache import build_feature_store
+
+    fm, source = choose_feature_model(ws, model, input_size, norm)
+    teacher = make_feature_teacher(fm, source)
+    if fm.path is not None:  # saved as the absolute file, so a relative path or a folder reads the same later
+        fm = FeatureModel(str(teacher.path.resolve()), fm.input_size, fm.norm)
+    old = ws.settings.get(FEATURE_SETTING, "unset")
+    if notes is not None and old != "unset" and old != fm.to_setting():
+        notes.append(f"feature teacher changed to {fm.label}: the feature field now learns it (select again)")
     store = build_feature_store(scene.train.images, teacher, ws.teachers_dir, dims=dims)
-    ws.update_settings(teacher=getattr(teacher, "name", "default"))
+    ws.update_settings(**{FEATURE_SETTING: fm.to_setting(), "teacher": getattr(teacher, "name", DEFAULT_FEATURE),
+                          "feature_dims": int(dims)})
     return store.codes
 
 
-def depth_priors(scene, ws, notes: list | None = None):
-    """Sparse depth priors (SfM points, else triangulated from the known poses), cached in the workspace;
-    None (with a line in `notes`) when too few matches exist: stage 1 then trains without depth."""
-    from core.teachers.depth import DepthPriors
+def workspace_codec(scene, ws, teacher):
+    """The PCA codec of the workspace's feature cache for `teacher` (rebuilt from the images when the cache
+    is gone): what projects a teacher-space query into the field's feature codes."""
+    from core.teachers.cache import build_feature_store, stored_codec
+
+    dims = int(ws.settings.get("feature_dims", FEATURE_DIMS))
+    codec = stored_codec(scene.train.images, teacher, ws.teachers_dir, dims=dims)
+    if codec is None:
+        codec = build_feature_store(scene.train.images, teacher, ws.teachers_dir, dims=dims).codec
+    return codec
+
+
+def choose_depth_model(ws, model: str | None = None) -> tuple[str | None, str]:
+    """(ONNX path or None for sparse only, source): `model` ('none' or a path) > the saved choice > the
+    environment. A workspace trained before choices were saved keeps its sparse priors."""
+    from core.teachers.depth_onnx import ENV_DEPTH_MODEL
+
+    if model:
+        return (None if model == NO_DEPTH_MODEL else str(model)), "flag"
+    settings = ws.settings
+    if DEPTH_SETTING in settings:
+        return (str(settings[DEPTH_SETTING]) if settings[DEPTH_SETTING] else None), "setting"
+    env = _env_model(ENV_DEPTH_MODEL, "depth.onnx")
+    return (env, "env") if env and not _trained(ws) else (None, "none")
+
+
+def make_depth_teacher(path: str, source: str = "flag"):
+    """The monocular depth teacher of a path; a missing or broken model names what to fix."""
+    from core.teachers.depth_onnx import OnnxDepthTeacher
+
+    try:
+        return OnnxDepthTeacher(path)
+    except ModelNotFoundError as exc:
+        if source != "setting":
+            raise
+        raise ModelNotFoundError(f"the workspace's depth model (settings.json '{DEPTH_SETTING}') cannot be used: "
+                                 f"{str(exc).splitlines()[0]}",
+                                 hint="move the file back, or choose again: repaint-nerf train SCENE --workspace "
+                                      "WS --depth-model PATH.onnx (or --depth-model none)") from exc
+
+
+def depth_priors(scene, ws, notes: list | None = None, model: str | None = None):
+    """Depth priors of the training images, cached in the workspace: sparse (SfM points, else triangulated
+    from the known poses), made dense by a monocular depth model aligned to them when one is chosen. None
+    (with a line in `notes`) when too few matches exist: stage 1 then trains without depth."""
+    path, source = choose_depth_model(ws, model)
+    teacher = make_depth_teacher(path, source) if path else None  # a broken model fails before any work
+    sparse = sparse_depth_priors(scene, ws, notes)
+    if teacher is not None and sparse is None and notes is not None:
+        notes.append(f"depth model {Path(path).name} not used: there are no sparse depth points to align it to")
+    ws.update_settings(**{DEPTH_SETTING: None if teacher is None else str(teacher.path.resolve())})
+    if teacher is None or sparse is None:
+        return sparse
+    return _cached_priors(scene, ws.teachers_dir / _aligned_cache_name(teacher),
+                          lambda: _aligned(teacher, scene, sparse))
+
+
+def _aligned(teacher, scene, sparse):
+    from core.teachers.depth_onnx import aligned_monocular_depth
+
+    return aligned_monocular_depth(teacher, scene.train.images, sparse)
+
+
+def _aligned_cache_name(teacher) -> str:
+    """The cache file of one depth model's aligned depth: keyed by the model's config, so another model (or
+    the same name with other settings) never reads it."""
+    from core.teachers.cache import teacher_key
+
+    return f"depth_priors-{teacher_key(teacher)}.safetensors"
+
+
+def sparse_depth_priors(scene, ws, notes: list | None = None):
+    """Sparse depth priors, cached; None (with a line in `notes`) when too few matches exist."""
     from core.teachers.depth_sparse import depth_for_scene
 
-    path = ws.teachers_dir / DEPTH_CACHE
+    try:
+        return _cached_priors(scene, ws.teachers_dir / DEPTH_CACHE, lambda: depth_for_scene(scene))
+    except (UserError, ValueError, RuntimeError) as exc:
+        if notes is not None:
+            notes.append(f"no depth priors ({str(exc).splitlines()[0]})")
+        return None
+
+
+def _cached_priors(scene, path: Path, compute):
+    """Priors read from `path` when it holds one per training image, else computed and saved there."""
+    from core.teachers.depth import DepthPriors
+
     if path.exists():
         try:
             priors = DepthPriors.load(path)
@@ -34,11 +257,6 @@ def depth_priors(scene, ws, notes: list | None = None):
                 return priors
         except UserError:
             pass
-    try:
-        priors = depth_for_scene(scene)
-    except (UserError, ValueError, RuntimeError) as exc:
-        if notes is not None:
-            notes.append(f"no depth priors ({str(exc).splitlines()[0]})")
-        return None
+    priors = compute()
     priors.save(path)
     return priors
