@@ -144,7 +144,7 @@ class EditorApp:
                 self.worker.projector.reset()
                 for note in s.scene_info.get("notes", []):
                     s.say(note)
-            elif msg.name == "select":
+            elif msg.name in ("select", "select_text"):
                 s.selection_busy = False
                 s.has_selection = True
                 self.viewport.upload_similarity(msg.value)

@@ -37,6 +37,7 @@ class EditorState:
     has_selection: bool = False
     selection_busy: bool = False
     masks_done: int | None = None
+    text_query: str = ""  # "Select by text" (needs a CLIP-aligned teacher and clip_path)
     prompt: str = ""
     bg_prompt: str = ""
     backend: str = "offline"

@@ -112,6 +112,7 @@ class Engine:
         self.last_info: dict = {}
         self.notes: list[str] = []
         self._feature_cache: tuple | None = None  # (camera key, (H, W, F) tensor) of the newest render
+        self._text_query: tuple | None = None  # (workspace root, clip path, (teacher, codec)) for select_text
         self._saved_step = -1  # stage-1 step of the newest saved version
 
     # ---- what exists
@@ -178,8 +179,8 @@ class Engine:
         from core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
 
         self.notes = []
-        features = feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or FEATURE_DIMS) \
-            if want_features else None
+        features = feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or FEATURE_DIMS,
+                                   notes=self.notes) if want_features else None
         depth = depth_priors(scene, ws, self.notes) if self.use_depth else None
         trainer = stage1.Stage1Trainer(scene, ws, train_cfg, field_cfg, device=self.device,
                                        feature_targets=features, depth_priors=depth)
@@ -190,6 +191,7 @@ class Engine:
         self.scene, self.workspace, self.trainer = scene, ws, trainer
         self.field, self.grid = trainer.field, trainer.grid
         self.selection, self.masks, self.edit, self._feature_cache = None, None, None, None
+        self._text_query = None
         self.paused = False
         self.stage1_frozen = any(v.kind == "edit" for v in ws.versions)
         self._saved_step = trainer.step_count if version is not None else -1
@@ -325,6 +327,36 @@ class Engine:
         self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
         self.masks = None
         return _np(self.selection.similarity(feat))
+
+    def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:
+        """Start ('new') or extend ('add') the selection with a text query through the workspace's CLIP-aligned
+        teacher (`clip_path`, else $REPAINT_NERF_CLIP_PATH or the 'clip_path' setting). Returns this view's
+        similarity map, as `select` does."""
+        self._need_scene()
+        sel = _backend("select")
+        if mode not in ("new", "add"):
+            raise UserError(f"a text query can start or extend a selection, not {mode!r}",
+                            hint="subtract with a patch (ctrl-drag) instead")
+        if not self.has_feature_head():
+            raise UserError("this field was trained without a feature head, so it cannot select",
+                            self.workspace.root if self.workspace is not None else None,
+                            hint="open the scene's dataset folder with a new workspace (features train with it)")
+        teacher, codec = self._text_teacher(clip_path)
+        feat = self._features_for(cameras)
+        selection = self.selection if self.selection is not None and mode == "add" else \
+            sel.Selection(teacher=str(self.workspace.settings.get("teacher", "default")), cleanup=False)
+        selection.add_text(text, teacher, codec)
+        self.selection, self.masks = selection, None
+        return _np(self.selection.similarity(feat))
+
+    def _text_teacher(self, clip_path: str | None) -> tuple:
+        """(teacher with encode_text, codec) of the workspace, loaded once per workspace and CLIP path."""
+        from core.teachers.text import workspace_text_query
+
+        key = (str(self.workspace.root), clip_path or None)
+        if self._text_query is None or self._text_query[:2] != key:
+            self._text_query = key + (workspace_text_query(self.scene, self.workspace, clip_path),)
+        return self._text_query[2]
 
     def clear_selection(self) -> None:
         self.selection = None

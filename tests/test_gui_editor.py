@@ -33,6 +33,7 @@ class AnalyticEngine:
         self.fail_render_after = fail_render_after
         self.renders = 0
         self.render_delay = 0.0
+        self.text_calls: list = []
 
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
@@ -97,6 +98,12 @@ class AnalyticEngine:
         mean = mean.reshape(-1, feat.shape[-1]).mean(0)
         self.query = mean if mode == "new" or self.query is None else self.query + (mean if mode == "add" else -mean)
         return self._sim(feat)
+
+    def select_text(self, cameras, text, mode="new", clip_path=None):
+        self.text_calls.append((text, mode, clip_path))
+        q = np.array([1.0, 0.0, 0.0] if "sphere" in text else [0.0, 1.0, 0.0])
+        self.query = q if mode == "new" or self.query is None else self.query + q
+        return self._sim(self.render(cameras)["feature"])
 
     def clear_selection(self):
         self.query = None
@@ -371,3 +378,18 @@ def test_a_moved_view_is_not_redrawn_stale_while_it_renders(editor):
     finally:
         editor.engine.render_delay = 0.0
     run_until(editor, lambda: full_frame(editor))
+
+
+def test_select_by_text_calls_the_engine_and_shows_the_mask(editor):
+    editor.clear_selection()
+    run_until(editor, lambda: editor.engine.query is None)
+    click(editor, "text_section")  # the section is folded by default
+    editor.state.text_query, editor.state.clip_path = "red sphere", "/models/clip"
+    frames(editor, 2)
+    click(editor, "select_text")
+    run_until(editor, lambda: editor.state.has_selection)
+    assert editor.engine.text_calls == [("red sphere", "new", "/models/clip")]
+    np.testing.assert_array_equal(editor.engine.query, [1.0, 0.0, 0.0])
+    assert editor.state.view_mode in ("mask", "similarity")
+    click(editor, "text_section")
+    editor.clear_selection()

@@ -1,19 +1,25 @@
-"""`repaint-nerf select WS --view I --patch x0,y0,x1,y1 [--add ...] [--sub ...] --out DIR`: select an
-object through the workspace's feature field; writes the selection and every training view's mask
-(into DIR and into the workspace, where the repaint reads them)."""
+"""`repaint-nerf select WS --view I --patch x0,y0,x1,y1 [--add ...] [--sub ...] --out DIR` (or `--text PROMPT`
+with a CLIP-aligned teacher): select an object through the workspace's feature field; writes the selection
+and every training view's mask (into DIR and into the workspace, where the repaint reads them)."""
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
 NAME = "select"
-HELP = "select an object by a patch in one training view; writes the selection and a mask per training view"
+HELP = ("select an object by a patch in one training view (or by text with a CLIP-aligned teacher); "
+        "writes the selection and a mask per training view")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("workspace", help="workspace folder trained with a feature head (repaint-nerf train)")
-    p.add_argument("--view", type=int, required=True, help="training view index the patches are drawn in")
-    p.add_argument("--patch", required=True, help="x0,y0,x1,y1 in pixels (x1, y1 exclusive): the object's patch")
+    p.add_argument("--view", type=int, default=None, help="training view index the patches are drawn in")
+    query = p.add_mutually_exclusive_group(required=True)
+    query.add_argument("--patch", help="x0,y0,x1,y1 in pixels (x1, y1 exclusive): the object's patch (needs --view)")
+    query.add_argument("--text", help="what to select, e.g. 'a red ball': needs a workspace trained with a "
+                                      "CLIP-aligned --feature-model (LSeg) and that CLIP model (--clip-path)")
+    p.add_argument("--clip-path", default=None,
+                   help="local CLIP folder of the teacher's feature space, for --text (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--add", action="append", default=[], metavar="x0,y0,x1,y1",
                    help="another positive patch in the same view (repeatable): selects its look-alikes too")
     p.add_argument("--sub", action="append", default=[], metavar="x0,y0,x1,y1",
@@ -50,38 +56,73 @@ def load_trained(workspace, device=None):
     return field, grid, header, scene
 
 
+def _patches(args) -> list:
+    """The --patch/--add/--sub rectangles of --view; --add/--sub without --patch is a UserError."""
+    from core.errors import UserError
+    from core.select.query import Patch
+
+    if args.text is not None:
+        if args.add or args.sub:
+            raise UserError("--add and --sub are patches; use them with --patch, not --text")
+        return []
+    if args.view is None:
+        raise UserError("--patch needs --view, the training view it is drawn in",
+                        hint="e.g. --view 0 --patch 40,30,60,50")
+    return [Patch.parse(args.patch, args.view)] + [Patch.parse(t, args.view) for t in args.add] \
+        + [Patch.parse(t, args.view, positive=False) for t in args.sub]
+
+
+def _check_patches(patches: list, cams, view: int | None) -> None:
+    """Raise a UserError unless --view exists and every patch lies inside it."""
+    from core.errors import UserError
+
+    if not patches:
+        return
+    n = len(cams)
+    if not 0 <= view < n:
+        raise UserError(f"--view {view} does not exist; the scene has {n} training views",
+                        hint=f"choose --view between 0 and {n - 1}")
+    w, h = int(cams.width[view]), int(cams.height[view])
+    for p in patches:
+        p.check(w, h)
+
+
+def _describe(args, patches: list) -> str:
+    """What was selected with, for the summary line."""
+    if args.text is not None:
+        return f"selected by text {args.text!r}"
+    return (f"selected with {sum(p.positive for p in patches)} positive and {sum(not p.positive for p in patches)} "
+            f"negative patch(es) in view {args.view}")
+
+
 def run(args: argparse.Namespace) -> int:
     import time
 
     import numpy as np
 
-    from core.errors import UserError
     from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
-    from core.select.query import Patch
     from core.select.selection import Selection
     from core.workspace.workspace import Workspace
 
     threshold = check_threshold(DEFAULT_THRESHOLD if args.threshold is None else args.threshold)
-    patches = [Patch.parse(args.patch, args.view)] + [Patch.parse(t, args.view) for t in args.add] \
-        + [Patch.parse(t, args.view, positive=False) for t in args.sub]
+    patches = _patches(args)
     ws = Workspace.open(args.workspace)
     field, grid, header, scene = load_trained(ws, args.device)
     cams = scene.field_cameras("train")
-    n = len(cams)
-    if not 0 <= args.view < n:
-        raise UserError(f"--view {args.view} does not exist; the scene has {n} training views",
-                        hint=f"choose --view between 0 and {n - 1}")
-    w, h = int(cams.width[args.view]), int(cams.height[args.view])
-    for p in patches:
-        p.check(w, h)
+    _check_patches(patches, cams, args.view)
 
     t0 = time.perf_counter()
     cache = ViewCache(field, grid, cams)
-    feat = cache.get(args.view).feature
-    sel = Selection(threshold=threshold, cleanup=not args.no_cleanup,
+    sel = Selection(threshold=threshold, cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
                     teacher=str(header.get("teacher") or ws.settings.get("teacher") or "default"))
-    for p in patches:
-        sel.add_patch(feat, p)
+    if args.text is not None:
+        from core.teachers.text import workspace_text_query
+
+        sel.add_text(args.text, *workspace_text_query(scene, ws, args.clip_path))
+    else:
+        feat = cache.get(args.view).feature
+        for p in patches:
+            sel.add_patch(feat, p)
     names = list(scene.train.names)
     masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names)
     sel_path = sel.save(ws)
@@ -92,8 +133,7 @@ def run(args: argparse.Namespace) -> int:
 
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])
-    print(f"selected with {sum(p.positive for p in patches)} positive and {sum(not p.positive for p in patches)} "
-          f"negative patch(es) in view {args.view}, threshold {threshold:.2f}, 3D clean-up "
+    print(f"{_describe(args, patches)}, threshold {threshold:.2f}, 3D clean-up "
           f"{'on' if sel.cleanup else 'off'}: {len(masks)} masks covering {100 * cover:.1f}% of pixels on average "
           f"({time.perf_counter() - t0:.1f} s)")
     print(f"wrote {out} (mask_0000.png ...), {ws.masks_dir} and {sel_path}")

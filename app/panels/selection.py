@@ -1,4 +1,4 @@
-"""Selection panel: the patch tool, the live threshold slider, clear, and apply-to-all-views."""
+"""Selection panel: the patch tool, select by text, the live threshold slider, clear, and apply-to-all-views."""
 from __future__ import annotations
 
 from imgui_bundle import imgui
@@ -22,6 +22,7 @@ def draw(app) -> None:
         s.tool = "select"
     remember_item(app, "select_tool")
     imgui.text_disabled("drag a rectangle; shift adds, ctrl subtracts")
+    _draw_text_query(app)
     # The threshold is a shader uniform: moving it redraws the mask in this frame, it does not re-render.
     _, s.threshold = imgui.slider_float("Threshold", s.threshold, 0.0, 1.0, "%.3f")
     remember_item(app, "threshold")
@@ -35,3 +36,24 @@ def draw(app) -> None:
         app.call("masks_for_all_views", float(s.threshold))
     if s.masks_done is not None:
         imgui.text(f"masks for {s.masks_done} views saved")
+
+
+def _draw_text_query(app) -> None:
+    """A folded "Select by text" section: a prompt and the engine's select_text on the current view (it needs a
+    workspace trained with a CLIP-aligned teacher and that teacher's CLIP model)."""
+    s = app.state
+    opened = imgui.tree_node("Select by text")
+    remember_item(app, "text_section")
+    if not opened:
+        return
+    _, s.text_query = imgui.input_text("Text", s.text_query)
+    remember_item(app, "text_query")
+    _, s.clip_path = imgui.input_text("CLIP model folder", s.clip_path)
+    if imgui.is_item_hovered():
+        imgui.set_tooltip("the CLIP model of the feature teacher's space (else $REPAINT_NERF_CLIP_PATH); text "
+                          "selection needs a workspace trained with a CLIP-aligned --feature-model (LSeg)")
+    if imgui.button("Select by text") and s.text_query.strip() and app.camera is not None:
+        mode = "add" if imgui.get_io().key_shift and s.has_selection else "new"
+        app.call("select_text", app.camera.cameras(*app.view_size), s.text_query, mode, s.clip_path or None)
+    remember_item(app, "select_text")
+    imgui.tree_pop()
