@@ -136,6 +136,8 @@ class EditorApp:
                     s.loading = False
                 if msg.name == "repaint":
                     s.repaint_running = False
+                if msg.name in ("select", "select_text"):
+                    s.selection_busy = False
                 return
             if msg.name == "load":
                 s.loading = False
