@@ -278,6 +278,8 @@ def _draw_mode(editor, mode):
 
 
 def click(app, name):
+    app.cache["reveal"] = name  # scroll the panel to it first (a small window's panel scrolls)
+    frames(app, 3)
     x0, y0, x1, y1 = app.cache["items"][name]
     p = ((x0 + x1) / 2, (y0 + y1) / 2)
     frames(app, 3, mouse(*p))

@@ -115,8 +115,9 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     # the repaint ran on the training loop and left it on: stop it first, or stage 1 would train on from
     # the restored reconstruction before the screenshot
     editor.set_training(False)
+    n_events = len(editor.events)
     click(editor, "undo")
-    run_until(editor, lambda: any(e[1] == "reply:undo" for e in editor.events[-20:]))
+    run_until(editor, lambda: any(e[1] == "reply:undo" for e in editor.events[n_events:]))
     stale = editor.last_frame
     editor.worker.refresh()
     # a new final frame, not the one on screen from before the undo (progressive renders come first)

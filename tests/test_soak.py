@@ -17,7 +17,8 @@ def test_soak_300_requests(tmp_path):
     assert main(["bench", "soak", "--requests", "300", "--size", "16", "--json", str(out)]) == 0
     r = json.loads(out.read_text())
     assert r["requests"] == 300 and r["deadlocks"] == 0 and not r["crashes"] and r["worker_alive"]
-    assert r["answered"] == r["rests"] > 10  # every resting view got its frame
+    # every resting view got its frame (a view superseded mid-render is shown too: a first frame is not cancelled)
+    assert r["answered"] >= r["rests"] > 10
     assert r["cancelled_or_dropped"] > 0  # camera moves superseded requests: the cancel path ran
     assert r["frames"] >= r["answered"] and r["final_frames"] > 0
     assert r["train_steps"] > 0 and r["status"] > 0  # training ran between renders

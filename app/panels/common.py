@@ -17,5 +17,8 @@ def unavailable(app, feature: str) -> bool:
 
 def remember_item(app, name: str) -> None:
     """Record the last widget's screen rectangle under `name` (scripted input in tests and benchmarks clicks it)."""
+    if app.cache.get("reveal") == name:  # scripted input asked to scroll it into view, as a user would
+        imgui.set_scroll_here_y(0.5)
+        app.cache.pop("reveal")
     a, b = imgui.get_item_rect_min(), imgui.get_item_rect_max()
     app.cache.setdefault("items", {})[name] = (a.x, a.y, b.x, b.y)
