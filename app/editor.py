@@ -324,7 +324,7 @@ class EditorApp:
         self._request_view()  # before the panels and the draw: the worker starts on a camera move at once
         self._draw_panels(w - panel_w, panel_w, h)
         self._request_view()  # a panel changed the view (snap, reset, field of view, view mode, tool)
-        present = self._worth_drawing(msgs)
+        present = capture or self._worth_drawing(msgs)  # a screenshot is always drawn
         shot = self.window.end_frame(capture=capture, present=present, clear=not self._covered)
         self.frame_work_ms = (time.perf_counter() - self._frame_started) * 1000.0
         if present:

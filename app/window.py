@@ -114,10 +114,11 @@ class Window:
 
     def end_frame(self, capture: bool = False, present: bool = True, clear: bool = True) -> np.ndarray | None:
         """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3). With
-        `present` false the frame ends without drawing: the screen keeps the last picture. `clear` false
+        `present` false the frame ends without drawing (and without a capture): the screen keeps the last
+        picture. `clear` false
         when opaque windows cover the whole screen (a full-screen pass less on a software rasterizer)."""
         imgui.render()
-        if not (present or capture):
+        if not present:
             return None
         w, h = self.framebuffer_size()
         self.ctx.screen.use()

@@ -216,6 +216,12 @@ class Engine:
         if self.scene is None:
             raise UserError("no scene is loaded", hint="open a dataset, a photo folder or the demo scene first")
 
+    def _need_feature_head(self) -> None:
+        if not self.has_feature_head():
+            raise UserError("this field was trained without a feature head, so it cannot select",
+                            self.workspace.root if self.workspace is not None else None,
+                            hint="open the scene's dataset folder with a new workspace (features train with it)")
+
     def has_feature_head(self) -> bool:
         return self.field is not None and int(getattr(getattr(self.field, "cfg", None), "feature_dim", 0) or 0) > 0
 
@@ -316,10 +322,7 @@ class Engine:
         view, using the newest rendered feature map of this camera. Returns the view's similarity map."""
         self._need_scene()
         sel = _backend("select")
-        if not self.has_feature_head():
-            raise UserError("this field was trained without a feature head, so it cannot select",
-                            self.workspace.root if self.workspace is not None else None,
-                            hint="open the scene's dataset folder with a new workspace (features train with it)")
+        self._need_feature_head()
         feat = self._features_for(cameras)
         if self.selection is None or mode == "new":
             self.selection = sel.Selection(teacher=str(self.workspace.settings.get("teacher", "default")),
@@ -337,10 +340,7 @@ class Engine:
         if mode not in ("new", "add"):
             raise UserError(f"a text query can start or extend a selection, not {mode!r}",
                             hint="subtract with a patch (ctrl-drag) instead")
-        if not self.has_feature_head():
-            raise UserError("this field was trained without a feature head, so it cannot select",
-                            self.workspace.root if self.workspace is not None else None,
-                            hint="open the scene's dataset folder with a new workspace (features train with it)")
+        self._need_feature_head()
         teacher, codec = self._text_teacher(clip_path)
         feat = self._features_for(cameras)
         selection = self.selection if self.selection is not None and mode == "add" else \

@@ -1,6 +1,7 @@
 """`repaint-nerf bench viewport`: the editor in a real window on the demo scene while it trains, driven by
 scripted input; reports UI frame time p50/p99, camera move -> first new frame, frames per second and view
-age during a continuous drag, patch release -> mask on screen, and slider -> mask (in frames). Starts its own Xvfb when there is no DISPLAY."""
+age during a continuous drag, patch release -> mask on screen, and slider -> mask (in frames). Starts its
+own Xvfb when there is no DISPLAY."""
 from __future__ import annotations
 
 import argparse

@@ -96,9 +96,10 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
         raise WorkspaceError("no training images to compute teacher features for", folder)
     hashes = [image_hash(check_image(im)) for im in images]
     n = len(images)
+    folder = Path(folder) / teacher_key(teacher)
     fit_idx = _fit_indices(n, fit_images)
-    basis_file = _basis_file(hashes, fit_idx, teacher, folder, dims, scale, samples_per_image, seed)
-    folder, fit_id = basis_file.parent, basis_file.stem.removeprefix("basis-")
+    fit_id = _fit_id(hashes, fit_idx, dims, scale, samples_per_image, seed)
+    basis_file = folder / f"basis-{fit_id}.safetensors"
     code_dir = folder / fit_id
     files = [code_dir / f"{h}.safetensors" for h in hashes]
     computed: dict[int, np.ndarray] = {}
@@ -150,7 +151,8 @@ def stored_codec(images: Sequence[np.ndarray], teacher: FeatureTeacher, folder: 
         return None
     fit_idx = _fit_indices(len(images), fit_images)
     hashes = {i: image_hash(check_image(images[i])) for i in fit_idx}
-    return _load_codec(_basis_file(hashes, fit_idx, teacher, folder, dims, scale, samples_per_image, seed))
+    fit_id = _fit_id(hashes, fit_idx, dims, scale, samples_per_image, seed)
+    return _load_codec(Path(folder) / teacher_key(teacher) / f"basis-{fit_id}.safetensors")
 
 
 def _fit_indices(n: int, fit_images: int) -> list[int]:
@@ -158,13 +160,11 @@ def _fit_indices(n: int, fit_images: int) -> list[int]:
     return sorted(set(np.linspace(0, n - 1, min(n, max(1, fit_images))).round().astype(int).tolist()))
 
 
-def _basis_file(hashes, fit_idx: list[int], teacher: FeatureTeacher, folder: str | Path, dims: int,
-                scale: float, samples_per_image: int, seed: int) -> Path:
-    """Where the basis of these settings lives: <folder>/<teacher key>/basis-<fit id>.safetensors."""
-    fit_id = hashlib.sha1(json.dumps({"v": FORMAT_VERSION, "dims": dims, "scale": scale, "seed": seed,
-                                      "spi": samples_per_image, "fit": [hashes[i] for i in fit_idx]}
-                                     ).encode()).hexdigest()[:12]
-    return Path(folder) / teacher_key(teacher) / f"basis-{fit_id}.safetensors"
+def _fit_id(hashes, fit_idx: list[int], dims: int, scale: float, samples_per_image: int, seed: int) -> str:
+    """The id of a PCA fit (its basis file and code folder): the fitted images and the fit's settings."""
+    return hashlib.sha1(json.dumps({"v": FORMAT_VERSION, "dims": dims, "scale": scale, "seed": seed,
+                                    "spi": samples_per_image, "fit": [hashes[i] for i in fit_idx]}
+                                   ).encode()).hexdigest()[:12]
 
 
 def _load_codec(path: Path) -> PCACodec | None:
