@@ -91,11 +91,7 @@ class EditorApp:
         self.worker.refresh()
 
     def start_repaint(self) -> None:
-        s = self.state
-        opts = {"lambda_unmask": float(s.lambda_unmask), "steps": int(s.steps), "threshold": float(s.threshold)}
-        if s.backend == "sd":
-            opts.update(sd_path=s.sd_path or None, clip_path=s.clip_path or None)
-        self.call("repaint", s.prompt, s.bg_prompt, s.backend, opts)
+        self.call("repaint", **repaint_panel.repaint_request(self.state))
 
     def export_png(self, path: str) -> None:
         if self.camera is not None:

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from core.repaint.config import RepaintConfig
+
 
 @dataclass
 class TrainingHistory:
@@ -43,8 +45,7 @@ class EditorState:
     backend: str = "offline"
     sd_path: str = ""
     clip_path: str = ""
-    lambda_unmask: float = 100.0
-    steps: int = 200
+    repaint_config: RepaintConfig = field(default_factory=RepaintConfig)  # the CLI's defaults; the panel edits it
     repaint_running: bool = False
     training: bool = True
     last_status: dict = field(default_factory=dict)

@@ -8,6 +8,7 @@ modules and holds no algorithm of its own. A backend that is not installed raise
 """
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 from pathlib import Path
@@ -18,6 +19,8 @@ import torch
 
 from core.device import get_device
 from core.errors import UserError, WorkspaceError
+from core.repaint import registry
+from core.repaint.config import RepaintConfig
 
 # Feature -> the module that provides it (checked by import, lazily: `core` stays fast to import).
 BACKENDS = {
@@ -31,7 +34,6 @@ BACKENDS = {
     "workspace": "core.workspace.workspace",
 }
 WORKSPACE_MARKER = "workspace.json"
-GUIDANCES = ("offline", "recolor", "remove", "analytic", "sd")
 # The viewport never renders finer than this multiple of the training images' long side (sharper than
 # the data adds nothing and costs seconds per frame on a CPU).
 MAX_RENDER_OVERSAMPLE = 2.0
@@ -386,22 +388,22 @@ class Engine:
         return len(masks)
 
     # ---- repaint (stage 2)
-    def repaint(self, prompt: str, bg_prompt: str = "", backend: str = "offline", options: dict | None = None) -> dict:
+    def repaint(self, prompt: str, bg_prompt: str = "", guidance: str = "offline", config: RepaintConfig | None = None,
+                threshold: float | None = None, sd_path: str | None = None, clip_path: str | None = None,
+                color: str | None = None) -> dict:
         """Start an edit of the masked region (paper Eq. s2); `train_for` then advances it.
 
-        `backend`: offline (recolor or remove, read from the prompt), recolor, remove, analytic (a synthetic
-        scene's edited/ variant) or sd. `options`: threshold (masks from the live selection when none were
-        applied yet), steps, lambda_unmask, sd_path, clip_path, color and other RepaintConfig fields.
+        `guidance`: a backend of core.repaint.registry (offline, recolor, remove, sd, analytic). `config`: a
+        core.repaint.config.RepaintConfig (None: its defaults). `threshold`: masks from the live selection when
+        none were applied yet. `sd_path`, `clip_path`: model paths (else env / workspace settings); `color`:
+        the recolour target (else a colour named in the prompt).
         """
         self._need_scene()
-        if backend not in GUIDANCES:
-            raise UserError(f"unknown guidance {backend!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
-        if backend in ("offline", "recolor", "remove", "sd") and not prompt.strip():
+        if registry.get(guidance).needs_prompt and not prompt.strip():
             raise UserError("the prompt is empty", hint="type what the selected region should become")
         rep = _backend("repaint")
-        opts = dict(options or {})
-        threshold = opts.pop("threshold", None)
-        kw = {k: opts.pop(k) for k in ("sd_path", "clip_path", "color") if k in opts}
+        # The viewport re-renders the live field as the preview: no snapshots.
+        config = dataclasses.replace(config or RepaintConfig(), snapshot_every=0)
         if self.edit is not None:
             self.cancel()
         if self.masks is None:
@@ -418,10 +420,9 @@ class Engine:
                     raise UserError("nothing is selected",
                                     hint="drag a rectangle over an object (Select patch), then press Repaint") from None
         self._save_reconstruction()
-        opts.setdefault("snapshot_every", 0)  # the viewport re-renders the live field as the preview
         self.edit = rep.RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
-                                       guidance=backend, prompt=prompt, bg_prompt=bg_prompt, device=self.device,
-                                       **kw, **opts)
+                                       guidance=guidance, prompt=prompt, bg_prompt=bg_prompt, config=config,
+                                       device=self.device, sd_path=sd_path, clip_path=clip_path, color=color)
         self.stage1_frozen = True
         self.paused = False
         return {"started": time.time(), "guidance": self.edit.kind, "steps": int(self.edit.cfg.steps)}

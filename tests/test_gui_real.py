@@ -100,7 +100,7 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     frames(editor, 1, lambda io: io.add_key_event(imgui.Key.enter, True))
     frames(editor, 2, lambda io: io.add_key_event(imgui.Key.enter, False))
     assert s.prompt == "make it blue"
-    s.backend, s.steps = "recolor", 12
+    s.backend, s.repaint_config.steps = "recolor", 12
     click(editor, "repaint")
     run_until(editor, lambda: s.repaint_running, timeout=60)
     run_until(editor, lambda: not s.repaint_running, timeout=120)

@@ -6,9 +6,13 @@ import pytest
 import torch
 
 from core.errors import UserError
-from core.repaint import offline
+from core.repaint.color_space import lab_to_rgb, linear_to_srgb, luminance, rgb_to_lab, srgb_to_linear
 from core.repaint.colors import COLORS, color_in_prompt, parse_rgb, resolve_color
-from core.repaint.trainer import RepaintTrainer, offline_kind
+from core.repaint.inpaint import inpaint
+from core.repaint.recolor import recolor
+from core.repaint.region import region_points, selection_region
+from core.repaint.registry import offline_kind
+from core.repaint.trainer import RepaintTrainer
 from repaint_scene import make_field, make_grid, make_scene
 
 
@@ -28,42 +32,42 @@ def test_colour_names_in_prompts():
 
 
 def _hue(rgb: torch.Tensor) -> torch.Tensor:
-    lab = offline.rgb_to_lab(rgb)
+    lab = rgb_to_lab(rgb)
     return torch.atan2(lab[..., 2], lab[..., 1])
 
 
 def test_recolour_keeps_shading_and_takes_the_hue():
     shade = torch.linspace(0.2, 1.0, 9)[:, None]
-    red = offline.linear_to_srgb(offline.srgb_to_linear(torch.tensor([0.85, 0.12, 0.10])) * shade)
+    red = linear_to_srgb(srgb_to_linear(torch.tensor([0.85, 0.12, 0.10])) * shade)
     blue = torch.tensor(COLORS["blue"])
-    out = offline.recolor(red, blue, mode="shading", ref_luminance=float(offline.luminance(red).max()))
+    out = recolor(red, blue, mode="shading", ref_luminance=float(luminance(red).max()))
     # same luminance ratios as the input (shading kept), hue of the target
-    ratio_in = offline.luminance(red) / offline.luminance(red).max()
-    ratio_out = offline.luminance(out) / offline.luminance(out).max()
+    ratio_in = luminance(red) / luminance(red).max()
+    ratio_out = luminance(out) / luminance(out).max()
     torch.testing.assert_close(ratio_out, ratio_in, atol=2e-3, rtol=0)
     assert torch.allclose(_hue(out), _hue(blue).expand(9), atol=0.05)
     torch.testing.assert_close(out[-1], blue, atol=2e-3, rtol=0)  # the brightest pixel gets the target
-    light = offline.recolor(red, blue, mode="lightness")
+    light = recolor(red, blue, mode="lightness")
     in_gamut = (light.amax(-1) < 0.999) & (light.amin(-1) > 0.001)
     assert in_gamut.any()
-    torch.testing.assert_close(offline.rgb_to_lab(light)[in_gamut, 0], offline.rgb_to_lab(red)[in_gamut, 0],
+    torch.testing.assert_close(rgb_to_lab(light)[in_gamut, 0], rgb_to_lab(red)[in_gamut, 0],
                                atol=0.5, rtol=0)
     # outside the mask nothing changes
     m = torch.zeros(9)
     m[:3] = 1
-    part = offline.recolor(red, blue, m)
+    part = recolor(red, blue, m)
     torch.testing.assert_close(part[3:], red[3:])
 
 
 def test_lab_round_trip_and_inpaint():
     x = torch.rand(64, 3)
-    torch.testing.assert_close(offline.lab_to_rgb(offline.rgb_to_lab(x)), x, atol=1e-4, rtol=0)
+    torch.testing.assert_close(lab_to_rgb(rgb_to_lab(x)), x, atol=1e-4, rtol=0)
     img = torch.zeros(20, 20, 3)
     img[..., 1] = 0.6
     img[8:12, 8:12] = torch.tensor([1.0, 0.0, 0.0])
     hole = torch.zeros(20, 20)
     hole[7:13, 7:13] = 1
-    out = offline.inpaint(img, hole)
+    out = inpaint(img, hole)
     assert torch.allclose(out[8:12, 8:12], torch.tensor([0.0, 0.6, 0.0]), atol=0.02)
     torch.testing.assert_close(out[hole == 0], img[hole == 0])
 
@@ -71,7 +75,7 @@ def test_lab_round_trip_and_inpaint():
 def test_selection_region_is_the_visual_hull():
     scene, masks = make_scene()
     cams = scene.field_cameras("train")
-    region = offline.selection_region(cams, [torch.from_numpy(m).float() for m in masks], 1.0, 16)
+    region = selection_region(cams, [torch.from_numpy(m).float() for m in masks], 1.0, 16)
     ax = (torch.arange(16) + 0.5) / 8 - 1
     x = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1)
     assert region[x.norm(dim=-1) < 0.2].all()  # the ball's core
@@ -113,7 +117,7 @@ def test_remove_edit_clears_the_object(scene):
         red.append((rgb[:, 0] - rgb[:, 1:].mean(-1)).mean())
     assert float(torch.stack(red).mean()) < 0.15, "the red ball's pixels should show the slab or background"
     region = tr.guidance.region
-    x = offline.region_points(region, 1.0, 2048, torch.Generator().manual_seed(1))
+    x = region_points(region, 1.0, 2048, torch.Generator().manual_seed(1))
     with torch.no_grad():
         assert float(tr.field.density(x).mean()) < 0.2 * float(make_field().density(x).mean())
     assert after["psnr_unmasked"] > 25.0

@@ -3,48 +3,66 @@ selection (paper stage 2) and save the result as a new version (undo goes back t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import signal
 import sys
 import threading
+
+from core.repaint import registry
+from core.repaint.config import OPTIMIZERS, UNMASK_REDUCTIONS, RepaintConfig
 
 NAME = "repaint"
 HELP = "repaint the selected region (stage 2) under a guidance and save it as a new workspace version"
 
 
+# RepaintConfig fields the command sets from its flags (--lambda-unmask -> lambda_unmask); each flag defaults to
+# the field's default, so the CLI, the editor and the benchmarks share one set of defaults.
+CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_reduction", "lambda_clip", "resolution", "optimizer", "lr",
+                "mask_dilation", "seed")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    d = RepaintConfig()
     p.add_argument("workspace", help="workspace folder with a trained field and a selection (`repaint-nerf select`)")
     p.add_argument("--prompt", default="", help="what the selection should become, e.g. 'a blue rose in leaves'")
     p.add_argument("--bg-prompt", default="", help="what the rest shows, e.g. 'leaves' (the CLIP background loss)")
-    p.add_argument("--guidance", default="sd", choices=("sd", "recolor", "remove", "analytic"),
-                   help="sd: Stable Diffusion score distillation; recolor / remove: offline, no model; "
-                        "analytic: exact denoiser of a synthetic scene's edited/ variant (measurement)")
+    p.add_argument("--guidance", default="sd", choices=tuple(registry.GUIDANCES), help=registry.help_text())
     p.add_argument("--sd-path", default=None, help="local Stable Diffusion folder or .safetensors "
                                                    "(else $REPAINT_NERF_SD_PATH)")
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
-    p.add_argument("--steps", type=int, default=None, help="edit steps (default 300 on CPU; the paper runs 10000)")
-    p.add_argument("--lambda-unmask", type=float, default=100.0, help="weight of the unmask loss (paper: 100)")
-    p.add_argument("--unmask-reduction", choices=("mean", "sum"), default="mean",
-                   help="the unmask loss averaged over pixels (official code, default) or summed over rays (the "
-                        "paper's Eq.; holds the background far more firmly at the same weight)")
-    p.add_argument("--lambda-clip", type=float, default=None,
-                   help="weight of the CLIP background loss (default 0.01 with --guidance sd, else 0; 0 loads no CLIP)")
-    p.add_argument("--resolution", type=int, default=None,
+    p.add_argument("--steps", type=int, default=d.steps,
+                   help=f"edit steps (default {d.steps}, what a CPU finishes in minutes; the paper runs 10000)")
+    p.add_argument("--lambda-unmask", type=float, default=d.lambda_unmask,
+                   help=f"weight of the unmask loss (default {d.lambda_unmask:g}; paper: 100)")
+    p.add_argument("--unmask-reduction", choices=UNMASK_REDUCTIONS, default=d.unmask_reduction,
+                   help=f"the unmask loss averaged over pixels (official code) or summed over rays (the paper's "
+                        f"Eq.; holds the background far more firmly at the same weight); default {d.unmask_reduction}")
+    clip_defaults = ", ".join(f"{s.clip_weight:g} with --guidance {s.name}" for s in registry.GUIDANCES.values()
+                              if s.clip_weight > 0)
+    p.add_argument("--lambda-clip", type=float, default=d.lambda_clip,
+                   help=f"weight of the CLIP background loss (default {clip_defaults}, else 0; 0 loads no CLIP)")
+    p.add_argument("--resolution", type=int, default=d.resolution,
                    help="render long side in pixels (default: training size, at most 128 on CPU / 400 on CUDA)")
     p.add_argument("--color", default=None, help="recolour target as R,G,B (0-255) or #rrggbb (default: a colour "
                                                  "named in the prompt)")
-    p.add_argument("--optimizer", default="paper", choices=("paper", "official"),
-                   help="paper: Adan 1e-3 -> 1e-4; official code: 5e-3 with 10x on the grid")
-    p.add_argument("--lr", type=float, default=None, help="base learning rate (overrides the preset)")
-    p.add_argument("--mask-dilation", type=int, default=0, help="pixels to grow the mask by")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--optimizer", default=d.optimizer, choices=OPTIMIZERS,
+                   help=f"paper: Adan 1e-3 -> 1e-4; official code: 5e-3 with 10x on the grid (default {d.optimizer})")
+    p.add_argument("--lr", type=float, default=d.lr, help="base learning rate (overrides the preset)")
+    p.add_argument("--mask-dilation", type=int, default=d.mask_dilation, help="pixels to grow the mask by")
+    p.add_argument("--seed", type=int, default=d.seed)
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
+
+
+def config_from_args(args: argparse.Namespace) -> RepaintConfig:
+    """The RepaintConfig the flags describe (RepaintConfig's defaults where no flag was given)."""
+    return dataclasses.replace(RepaintConfig(), **{name: getattr(args, name) for name in CONFIG_FLAGS})
 
 
 def check_args(args: argparse.Namespace) -> None:
     """Reject bad values with one clear message each (before anything is loaded)."""
     from core.errors import UserError
 
-    if args.steps is not None and args.steps < 1:
+    if args.steps < 1:
         raise UserError(f"--steps must be at least 1, got {args.steps}")
     if args.lambda_unmask < 0:
         raise UserError(f"--lambda-unmask must not be negative, got {args.lambda_unmask}")
@@ -54,7 +72,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--resolution must be at least 8 pixels, got {args.resolution}")
     if args.mask_dilation < 0:
         raise UserError(f"--mask-dilation must not be negative, got {args.mask_dilation}")
-    if args.guidance == "sd" and not args.prompt.strip():
+    if registry.get(args.guidance).needs_prompt and not args.prompt.strip():
         raise UserError("--prompt is empty", hint="say what the selection should become, e.g. --prompt 'a blue rose'")
     if args.guidance == "recolor" and args.color is None:
         from core.repaint.colors import resolve_color
@@ -91,24 +109,19 @@ def open_workspace(path: str, device=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.repaint.trainer import RepaintConfig, RepaintTrainer
+    from core.repaint.trainer import RepaintTrainer
 
     check_args(args)
-    lambda_clip = args.lambda_clip if args.lambda_clip is not None else (0.01 if args.guidance == "sd" else 0.0)
-    if args.guidance == "sd":  # name a missing model before the field and scene load
+    cfg = config_from_args(args)
+    needed = registry.models_needed(args.guidance, cfg)
+    if needed:  # name a missing model before the field and scene load
         from core.models.paths import resolve_model_path
         from core.workspace.workspace import Workspace
 
         settings = Workspace.open(args.workspace).settings
-        resolve_model_path("sd", args.sd_path, settings)
-        if lambda_clip > 0:
-            resolve_model_path("clip", args.clip_path, settings)
+        for kind in needed:
+            resolve_model_path(kind, {"sd": args.sd_path, "clip": args.clip_path}[kind], settings)
     ws, scene, field, grid, masks = open_workspace(args.workspace, args.device)
-    cfg = RepaintConfig(lambda_unmask=args.lambda_unmask, unmask_reduction=args.unmask_reduction,
-                        lambda_clip=lambda_clip, resolution=args.resolution,
-                        optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed)
-    if args.steps is not None:
-        cfg.steps = args.steps
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,
                              prompt=args.prompt, bg_prompt=args.bg_prompt, config=cfg, sd_path=args.sd_path,
                              clip_path=args.clip_path, color=args.color)

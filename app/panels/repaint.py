@@ -1,15 +1,22 @@
 """Repaint panel: prompts, guidance backend and model paths, settings, Repaint, progress, undo/redo."""
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 from imgui_bundle import imgui
 
 from app.panels.common import remember_item, unavailable
+from app.state import EditorState
+from core.repaint import registry
 
-BACKENDS = ("offline", "recolor", "remove", "analytic", "sd")
-BACKEND_HELP = {"offline": "recolor or remove, read from the prompt (no model)", "recolor": "recolour to a colour named "
-                "in the prompt", "remove": "remove the object and fill in behind it",
-                "analytic": "the synthetic scene's edited/ variant (measurement)",
-                "sd": "Stable Diffusion score distillation (local model folder)"}
+
+def repaint_request(s: EditorState) -> dict[str, Any]:
+    """Engine.repaint's arguments from the panel's fields: prompts, guidance, a copy of the RepaintConfig the
+    fields edit (its defaults are the CLI's), the selection threshold and the model folders."""
+    return {"prompt": s.prompt, "bg_prompt": s.bg_prompt, "guidance": s.backend,
+            "config": dataclasses.replace(s.repaint_config), "threshold": float(s.threshold),
+            "sd_path": s.sd_path or None, "clip_path": s.clip_path or None}
 
 
 def _model_status(app, kind: str, flag: str) -> str | None:
@@ -34,28 +41,35 @@ def draw(app) -> None:
     _, s.prompt = imgui.input_text("Prompt", s.prompt)
     remember_item(app, "prompt")
     _, s.bg_prompt = imgui.input_text("Background prompt", s.bg_prompt)
+    remember_item(app, "bg_prompt")
     if imgui.begin_combo("Guidance", s.backend):
-        for b in BACKENDS:
-            if b == "analytic" and not s.scene_info.get("has_edited"):
+        for spec in registry.GUIDANCES.values():
+            if spec.needs_edited and not s.scene_info.get("has_edited"):
                 continue
-            if imgui.selectable(b, s.backend == b)[0]:
-                s.backend = b
+            if imgui.selectable(spec.name, s.backend == spec.name)[0]:
+                s.backend = spec.name
             if imgui.is_item_hovered():
-                imgui.set_tooltip(BACKEND_HELP[b])
+                imgui.set_tooltip(spec.help)
         imgui.end_combo()
-    if s.backend == "sd":
-        for kind, attr in (("sd", "sd_path"), ("clip", "clip_path")):
-            _, val = imgui.input_text(f"{kind.upper()} model folder", getattr(s, attr))
-            setattr(s, attr, val)
-            msg = _model_status(app, kind, val)
-            if msg is None:
-                imgui.text_colored(imgui.ImVec4(0.4, 1.0, 0.4, 1.0), f"{kind}: found")
-            else:
-                imgui.text_colored(imgui.ImVec4(1.0, 0.5, 0.4, 1.0), f"{kind}: missing")
-                if imgui.is_item_hovered():
-                    imgui.set_tooltip(msg)
-    _, s.lambda_unmask = imgui.input_float("lambda_unmask", s.lambda_unmask)
-    _, s.steps = imgui.input_int("Steps", s.steps)
+    cfg = s.repaint_config
+    changed, weight = imgui.input_float("CLIP weight", registry.clip_weight(s.backend, cfg), format="%.4g")
+    if changed:  # until edited, the guidance's default (paper Eq. clip; 0.01 with Stable Diffusion)
+        cfg.lambda_clip = max(0.0, weight)
+    if imgui.is_item_hovered():
+        imgui.set_tooltip("weight of the CLIP loss that pulls the rest toward the background prompt (0: no CLIP)")
+    for kind in registry.models_needed(s.backend, cfg):
+        attr = f"{kind}_path"
+        _, val = imgui.input_text(f"{kind.upper()} model folder", getattr(s, attr))
+        setattr(s, attr, val)
+        msg = _model_status(app, kind, val)
+        if msg is None:
+            imgui.text_colored(imgui.ImVec4(0.4, 1.0, 0.4, 1.0), f"{kind}: found")
+        else:
+            imgui.text_colored(imgui.ImVec4(1.0, 0.5, 0.4, 1.0), f"{kind}: missing")
+            if imgui.is_item_hovered():
+                imgui.set_tooltip(msg)
+    _, cfg.lambda_unmask = imgui.input_float("lambda_unmask", cfg.lambda_unmask)
+    _, cfg.steps = imgui.input_int("Steps", cfg.steps)
     if unavailable(app, "repaint"):
         return
     if not s.repaint_running:
@@ -64,7 +78,7 @@ def draw(app) -> None:
         remember_item(app, "repaint")
     else:
         st = s.last_status
-        done = float(st.get("step", 0)) / max(1, st.get("steps", s.steps)) if st.get("phase") == "repaint" else 0.0
+        done = float(st.get("step", 0)) / max(1, st.get("steps", cfg.steps)) if st.get("phase") == "repaint" else 0.0
         imgui.progress_bar(min(done, 1.0), imgui.ImVec2(-1, 0))
         if imgui.button("Resume" if not s.training else "Pause"):
             app.set_training(not s.training)

@@ -1,16 +1,27 @@
 """Stage 2 of the paper: guidance backends for repainting the selected region (Eq. SDS, Eq. clip).
 
-`build_guidance(kind, ...)` returns a backend with `loss(rgb, mask, view, step) -> dict`.
+`build_guidance(kind, ...)` returns a backend with `loss(rgb, mask, view, step) -> dict`; the backends are
+listed in `core.repaint.registry`. The package imports no torch until a backend is used, so the CLI's flags
+and the editor's fields can read `core.repaint.config` and the registry cheaply.
 """
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from core.repaint.guidance import Guidance, GuidanceResult
+if TYPE_CHECKING:
+    from core.repaint.guidance import Guidance, GuidanceResult
 
 __all__ = ["Guidance", "GuidanceResult", "build_guidance"]
+
+
+def __getattr__(name: str):
+    if name in ("Guidance", "GuidanceResult"):
+        from core.repaint import guidance
+
+        return getattr(guidance, name)
+    raise AttributeError(f"module 'core.repaint' has no attribute {name!r}")
 
 
 def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
@@ -36,5 +47,8 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
             raise ValueError("analytic guidance needs `targets` (the edited renders of the training views)")
         return AnalyticGuidance(targets, **options)
     from core.errors import UserError
+    from core.repaint.registry import get
 
-    raise UserError(f"unknown guidance backend {kind!r}", hint="use 'sd' or 'analytic'")
+    get(kind)  # an unknown name: the error lists the backends
+    raise UserError(f"the {kind!r} guidance is built from the repaint trainer's views",
+                    hint="use core.repaint.trainer.RepaintTrainer(..., guidance=kind)")

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.repaint.guidance import GuidanceResult, TimestepSampler, distillation_loss
+from core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
 
 
 def sd_alphas_cumprod(num_train_timesteps: int = 1000, beta_start: float = 0.00085,
@@ -38,7 +38,7 @@ def as_image_tensor(image: Tensor | np.ndarray) -> Tensor:
     return t[:, :3]
 
 
-class AnalyticGuidance:
+class AnalyticGuidance(Guidance):
     """SDS toward known per-view targets (the synthetic scene's edited/ renders of the same cameras)."""
 
     def __init__(self, targets: Sequence[Tensor | np.ndarray] | Tensor | Callable[[int], Tensor | np.ndarray],

@@ -23,11 +23,43 @@ class GuidanceResult(TypedDict):
 
 @runtime_checkable
 class Guidance(Protocol):
-    """What the repaint trainer calls once per step."""
+    """What the repaint trainer calls once per step.
+
+    `loss` is required. `grow_region` and `field_loss` are optional extras with the defaults below: a backend
+    that subclasses Guidance inherits them, and the trainer wraps any other object with `loss` in
+    `as_guidance`, so it never has to ask which extras an object has.
+    """
+
+    # Mark the selection's 3D cells occupied at the start, so new content can grow there (remove: False).
+    grow_region: bool = True
 
     def loss(self, rgb: Tensor, mask: Tensor, view: int, step: int) -> GuidanceResult:
         """rgb (1,3,H,W) in [0,1] with grad, mask (1,1,H,W); returns the guidance loss and its stats."""
         ...
+
+    def field_loss(self, field, step: int) -> Tensor | None:
+        """An extra loss on the field itself (remove: the region's density), or None (the default: none)."""
+        return None
+
+
+EXTRAS = ("grow_region", "field_loss")  # the optional members of Guidance, with the defaults above
+
+
+class _LossOnly(Guidance):
+    """A duck-typed guidance with only `loss`, given the protocol's defaults for the extras."""
+
+    def __init__(self, inner) -> None:
+        self.inner = inner
+        self.loss = inner.loss
+
+
+def as_guidance(obj) -> Guidance:
+    """`obj` itself when it has every Guidance member, else wrapped so the optional extras take their defaults."""
+    if isinstance(obj, Guidance):
+        return obj
+    if not callable(getattr(obj, "loss", None)):
+        raise TypeError("guidance must have loss(rgb, mask, view, step)")
+    return _LossOnly(obj)
 
 
 @dataclass

@@ -10,10 +10,10 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from core.models.sd import StableDiffusion
-from core.repaint.guidance import GuidanceResult, TimestepSampler, distillation_loss
+from core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
 
 
-class SDSGuidance:
+class SDSGuidance(Guidance):
     """Score distillation from a loaded StableDiffusion; prompt embeddings are computed once and cached."""
 
     def __init__(self, sd: StableDiffusion, prompt: str, negative_prompt: str = "",

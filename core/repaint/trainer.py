@@ -15,10 +15,8 @@ a finished one is saved as a new workspace version (undo goes back; the original
 from __future__ import annotations
 
 import dataclasses
-import re
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -30,47 +28,17 @@ from torch import Tensor
 from core.device import get_device, is_cuda, synchronize
 from core.errors import UserError
 from core.render.renderer import RenderOptions, render_camera, render_rays
-from core.repaint import offline
+from core.repaint import registry
+from core.repaint.config import RepaintConfig  # noqa: F401  (defined in config.py; imported from here too)
+from core.repaint.dilate import dilate
+from core.repaint.guidance import as_guidance
+from core.repaint.region import mark_region_occupied, selection_region
 from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from core.train.checkpoint import Checkpoint, split_state
 from core.train.health import SpikeDetector
 from core.train.schedule import LRSchedule
 
-GUIDANCES = ("sd", "recolor", "remove", "analytic")
 CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
-REMOVE_WORDS = re.compile(r"\b(remove|delete|erase|get rid of|take away|without)\b", re.I)
-
-
-@dataclass
-class RepaintConfig:
-    """Stage-2 settings. The paper runs 10000 steps at 400x400 on a GPU; our default of 300 steps at
-    <= 128 px is what a CPU finishes in minutes (offline and analytic edits converge in that)."""
-
-    steps: int = 300
-    resolution: int | None = None  # render long side; None = training size capped at 128 (CPU) / 400 (CUDA)
-    lambda_unmask: float = 100.0  # paper Eq. s2 (official code: 100)
-    # Eq. unmask reduced as the official code does ("mean" over the kept pixels) or as the paper writes it
-    # ("sum" over rays): at lambda 100 the mean is ~40x weaker per pixel than the guidance (bench edit).
-    unmask_reduction: str = "mean"
-    lambda_clip: float = 0.0  # official code: 0.01 with Stable Diffusion; 0 loads no CLIP
-    optimizer: str = "paper"  # 'paper': Adan 1e-3 decaying to 1e-4; 'official': 5e-3, 10x on the grid, constant
-    lr: float | None = None  # overrides the preset's base rate
-    mask_dilation: int = 0  # pixels added around the mask (guidance and unmask loss both see the larger mask)
-    unmask_margin: int = 1  # pixels around the mask the unmask loss leaves free (its soft edges may change)
-    snapshot_every: int = 25  # steps between preview snapshots (0 = none)
-    snapshot_view: int = 0
-    seed: int = 0
-    max_samples: int = 512
-    t_threshold: float = 1e-3
-    perturb: bool = True
-    grow_region: bool = True  # mark the selection's 3D cells occupied at the start
-    region_resolution: int = 64
-    recolor_mode: str = "shading"
-    remove_clear_weight: float = 10.0
-    # Measurement only (bench edit's second ablation): the analytic target outside the mask moves this far
-    # toward a flat tint, as a diffusion model also repaints surroundings it was not asked to change; the
-    # unmask loss (paper Eq. unmask) is what holds them. 0 = the true edited views.
-    analytic_drift: float = 0.0
 
 
 DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the unmasked target
@@ -79,11 +47,6 @@ DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the 
 def default_resolution(width: int, height: int, device: torch.device) -> int:
     """The render's long side: the training image's, capped at 400 on CUDA and 128 on CPU."""
     return min(max(width, height), CUDA_RESOLUTION if is_cuda(device) else CPU_RESOLUTION)
-
-
-def offline_kind(prompt: str) -> str:
-    """'remove' when the prompt asks to remove (remove, delete, erase, ...), else 'recolor'."""
-    return "remove" if REMOVE_WORDS.search(prompt or "") else "recolor"
 
 
 def _resize(img: np.ndarray, w: int, h: int, interp=cv2.INTER_AREA) -> np.ndarray:
@@ -123,8 +86,8 @@ def edited_images(scene) -> list[np.ndarray]:
 class RepaintTrainer:
     """Edits `field` in place under a guidance; see the module docstring.
 
-    `guidance` is a Guidance object or one of GUIDANCES ('offline' picks recolor or remove from the
-    prompt); `masks` are bool (H, W) per training view (default: the workspace's, from `select`).
+    `guidance` is a Guidance object or the name of a backend in core.repaint.registry ('offline' picks recolor
+    or remove from the prompt); `masks` are bool (H, W) per training view (default: the workspace's, from `select`).
     `on_snapshot(info)` gets {'step', 'rgb' (H, W, 3) numpy preview, 'view'} every `snapshot_every` steps.
     """
 
@@ -140,6 +103,10 @@ class RepaintTrainer:
         if unknown:
             raise TypeError(f"unknown repaint options {sorted(unknown)}")
         self.cfg = dataclasses.replace(cfg, **overrides)
+        kind = backend if guidance is None else guidance
+        spec = registry.resolve(kind, prompt) if isinstance(kind, str) else None
+        self.kind = spec.name if spec is not None else type(kind).__name__
+        self.cfg.lambda_clip = registry.clip_weight(self.kind, self.cfg)
         if self.cfg.steps < 1:
             raise UserError(f"steps must be at least 1, got {self.cfg.steps}")
         if self.cfg.lambda_unmask < 0 or self.cfg.lambda_clip < 0:
@@ -155,9 +122,8 @@ class RepaintTrainer:
         self.background = torch.tensor(bg, dtype=torch.float32, device=self.device)
         self._prepare_views(masks)
         self._initial = self._state_copy()
-        kind = backend if guidance is None else guidance
-        self.kind = kind if isinstance(kind, str) else type(kind).__name__
-        self.guidance = self._build_guidance(kind, sd_path, color, negative_prompt)
+        self.guidance = as_guidance(kind) if spec is None else \
+            spec.factory(self, registry.GuidanceInputs(sd_path, color, negative_prompt))
         self.clip = self._build_clip(clip_path)
 
         self.optimizer = self._make_optimizer()
@@ -176,9 +142,9 @@ class RepaintTrainer:
         # Start the grid's step counter past its warm-up so updates sample (not sweep) the grid.
         self._grid_step0 = ((getattr(grid, "warmup_steps", 0) // 16) + 1) * 16 if grid is not None else 0
         self.region = None
-        if self.cfg.grow_region and getattr(self.guidance, "grow_region", True) and grid is not None:
+        if self.cfg.grow_region and self.guidance.grow_region and grid is not None:
             self.region = self._region()
-            offline.mark_region_occupied(grid, self.region, self.bound)
+            mark_region_occupied(grid, self.region, self.bound)
 
     # -- set-up -------------------------------------------------------------------------------------
     @property
@@ -213,55 +179,32 @@ class RepaintTrainer:
             img = _composite(_resize(np.asarray(split.images[i]), w, h), self.background)
             m = _resize(np.asarray(masks[i], np.float32), w, h) > 0.5
             m = torch.from_numpy(m).to(self.device).float()
-            m = offline.dilate(m, self.cfg.mask_dilation)
+            m = dilate(m, self.cfg.mask_dilation)
             o, d, _ = cams.image_rays(i)
             self.rays.append((o, d))
             self.images.append(img)
             self.masks.append(m)
-            self.keep.append(1.0 - offline.dilate(m, self.cfg.unmask_margin))
+            self.keep.append(1.0 - dilate(m, self.cfg.unmask_margin))
         self.size = (int(cams.height[0]), int(cams.width[0]))
 
     def _region(self) -> Tensor:
-        return offline.selection_region(self.cameras, self.masks, self.bound, self.cfg.region_resolution)
+        return selection_region(self.cameras, self.masks, self.bound, self.cfg.region_resolution)
 
-    def _build_guidance(self, kind, sd_path, color, negative_prompt):
-        if not isinstance(kind, str):
-            if not hasattr(kind, "loss"):
-                raise TypeError("guidance must have loss(rgb, mask, view, step)")
-            return kind
-        if kind == "offline":
-            kind = offline_kind(self.prompt)
-            self.kind = kind
-        if kind == "recolor":
-            from core.repaint.colors import resolve_color
+    def widen_masks(self, pixels: int) -> None:
+        """Grow every view's mask by `pixels` (the unmask loss then holds only what is left outside)."""
+        self.masks = [dilate(m, pixels) for m in self.masks]
+        self.keep = [1.0 - dilate(m, self.cfg.unmask_margin) for m in self.masks]
 
-            rgb = resolve_color(self.prompt, color)
-            return offline.RecolorGuidance(self.images, self.masks, rgb, self.cfg.recolor_mode)
-        if kind == "remove":
-            region = offline.selection_region(self.cameras, self.masks, self.bound, self.cfg.region_resolution)
-            # Inpaint (and leave free of the unmask loss) a rim around the object's soft edges too.
-            rim = max(1, round(max(self.size) / 64))
-            self.masks = [offline.dilate(m, rim) for m in self.masks]
-            self.keep = [1.0 - offline.dilate(m, self.cfg.unmask_margin) for m in self.masks]
-            return offline.RemoveGuidance(self.images, self.masks, region, self.bound,
-                                          clear_weight=self.cfg.remove_clear_weight, seed=self.cfg.seed)
-        if kind == "analytic":
-            from core.repaint.analytic import AnalyticGuidance
-
-            targets = [_composite(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
-                       for im in edited_images(self.scene)]
-            if self.cfg.analytic_drift > 0:
-                tint = torch.tensor(DRIFT_TINT, device=self.device).view(1, 3, 1, 1)
-                targets = [t.to(self.device) for t in targets]
-                targets = [t + self.cfg.analytic_drift * (1.0 - m) * (tint - t) for t, m in zip(targets, self.masks)]
-            return AnalyticGuidance(targets, seed=self.cfg.seed)
-        if kind == "sd":
-            from core.repaint import build_guidance
-
-            settings = self.workspace.settings if self.workspace is not None else None
-            return build_guidance("sd", prompt=self.prompt, negative_prompt=negative_prompt, sd_path=sd_path,
-                                  settings=settings, device=self.device, seed=self.cfg.seed)
-        raise UserError(f"unknown guidance {kind!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
+    def edited_targets(self) -> list[Tensor]:
+        """The scene's edited/ views at the edit resolution, (1, 3, H, W) each, moved `analytic_drift` toward
+        DRIFT_TINT outside the mask (the analytic guidance's targets)."""
+        targets = [_composite(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
+                   for im in edited_images(self.scene)]
+        if self.cfg.analytic_drift > 0:
+            tint = torch.tensor(DRIFT_TINT, device=self.device).view(1, 3, 1, 1)
+            targets = [t.to(self.device) for t in targets]
+            targets = [t + self.cfg.analytic_drift * (1.0 - m) * (tint - t) for t, m in zip(targets, self.masks)]
+        return targets
 
     def _build_clip(self, clip_path):
         if self.cfg.lambda_clip <= 0:
@@ -336,12 +279,10 @@ class RepaintTrainer:
                     c = self.clip.loss(rgb, mask).float()
                     total = total + self.cfg.lambda_clip * c.to(total.device)
                     info["clip"] = float(c.detach())
-                extra = getattr(self.guidance, "field_loss", None)
-                if extra is not None:
-                    fl = extra(self.field, self.step_count)
-                    if fl is not None:
-                        total = total + fl
-                        info["field"] = float(fl.detach())
+                fl = self.guidance.field_loss(self.field, self.step_count)
+                if fl is not None:
+                    total = total + fl
+                    info["field"] = float(fl.detach())
                 if bool(torch.isfinite(total)):
                     total.backward()
                     before = self.optimizer.skipped_steps
