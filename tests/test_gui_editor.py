@@ -6,6 +6,7 @@ against known answers without the learned backends; the real engine is exercised
 """
 from __future__ import annotations
 
+import inspect
 import time
 
 import numpy as np
@@ -34,6 +35,7 @@ class AnalyticEngine:
         self.renders = 0
         self.render_delay = 0.0
         self.text_calls: list = []
+        self.repaint_calls: list[dict] = []
 
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
@@ -111,7 +113,12 @@ class AnalyticEngine:
     def masks_for_all_views(self, threshold):
         return 8
 
-    def repaint(self, prompt, bg_prompt="", backend="offline", options=None):
+    def repaint(self, *args, **kwargs):
+        from core.engine import Engine
+
+        call = inspect.signature(Engine.repaint).bind(self, *args, **kwargs)  # the real engine's signature
+        call.apply_defaults()
+        self.repaint_calls.append(call.arguments)
         self.edit_target = GREEN
         self.edit_steps = 0
         return {}
@@ -301,10 +308,23 @@ def test_repaint_previews_and_undo_restores(editor, artifacts_dir):
     frames(editor, 1, lambda io: io.add_key_event(imgui.Key.enter, True))
     frames(editor, 2, lambda io: io.add_key_event(imgui.Key.enter, False))
     assert editor.state.prompt == "a green ball", "typed into the prompt field"
+    editor.state.backend, editor.state.clip_path = "sd", "/models/clip"
+    click(editor, "bg_prompt")
+    frames(editor, 1, lambda io: io.add_input_characters_utf8("green leaves"))
+    frames(editor, 1, lambda io: io.add_key_event(imgui.Key.enter, True))
+    frames(editor, 2, lambda io: io.add_key_event(imgui.Key.enter, False))
     click(editor, "repaint")
     run_until(editor, lambda: editor.engine.edit_target is not None or editor.engine.current == 1)
     shot = run_until(editor, lambda: editor.engine.current == 1 and full_frame(editor) and _green_center(editor))
     cv2.imwrite(str(artifacts_dir / "gui_04_repaint.png"), shot[..., ::-1])
+    from core.repaint.config import RepaintConfig
+    from core.repaint.registry import clip_weight
+
+    call = editor.engine.repaint_calls[-1]  # what the panel sent: the CLI's defaults, the CLIP loss on with SD
+    assert (call["prompt"], call["bg_prompt"], call["guidance"], call["clip_path"]) == \
+        ("a green ball", "green leaves", "sd", "/models/clip")
+    assert call["config"] == RepaintConfig() and clip_weight(call["guidance"], call["config"]) == 0.01
+    editor.state.backend = "offline"
     click(editor, "undo")
     run_until(editor, lambda: editor.engine.current == 0 and not _green_center(editor))
     run_until(editor, lambda: full_frame(editor))

@@ -1,4 +1,5 @@
-"""Guidance backends: SDS on tiny SD parts, the analytic denoiser, the CLIP background loss, the loss form."""
+"""Guidance backends: SDS on tiny SD parts, the analytic denoiser, the CLIP background loss, the loss form, and
+the registry that lists the backends (with the protocol's optional extras)."""
 from __future__ import annotations
 
 import math
@@ -204,3 +205,40 @@ def test_fp16_latents_gradient_goes_through_grad_scaler():
     torch.testing.assert_close(w.grad, 1024.0 * g, rtol=2e-3, atol=2e-3)
     scaler.unscale_(opt)
     torch.testing.assert_close(w.grad, g, rtol=2e-3, atol=2e-3)
+
+
+def test_registry_records_match_the_backends_and_their_extras():
+    """Each record's `extras` are the optional Guidance members its class overrides; every backend class
+    satisfies the protocol; a duck-typed object with only `loss` gets the protocol's defaults."""
+    from core.errors import UserError
+    from core.repaint import build_guidance, registry
+    from core.repaint.guidance import EXTRAS, Guidance, as_guidance
+    from core.repaint.recolor import RecolorGuidance
+    from core.repaint.remove import RemoveGuidance
+
+    classes = {"recolor": RecolorGuidance, "remove": RemoveGuidance, "sd": SDSGuidance, "analytic": AnalyticGuidance}
+    assert set(classes) | {"offline"} == set(registry.GUIDANCES)
+    for name, cls in classes.items():
+        overridden = {e for e in EXTRAS if getattr(cls, e) is not getattr(Guidance, e)}
+        assert overridden == set(registry.get(name).extras), name
+        assert registry.get(name).factory is not None
+    assert RemoveGuidance.grow_region is False and RecolorGuidance.grow_region is True
+    assert isinstance(AnalyticGuidance([torch.zeros(1, 3, 4, 4)]), Guidance)
+    assert registry.resolve("offline", "remove the ball").name == "remove"
+    assert registry.resolve("offline", "make it blue").name == "recolor"
+
+    class LossOnly:
+        def loss(self, rgb, mask, view, step):
+            return {"loss": rgb.sum()}
+
+    wrapped = as_guidance(LossOnly())
+    assert wrapped.grow_region is True and wrapped.field_loss(None, 0) is None
+    assert float(wrapped.loss(torch.ones(1, 3, 2, 2), None, 0, 0)["loss"]) == 12.0
+    with pytest.raises(TypeError, match="loss"):
+        as_guidance(object())
+    with pytest.raises(UserError, match="use one of: offline, recolor, remove, sd, analytic"):
+        registry.get("dalle")
+    with pytest.raises(UserError, match="use one of"):
+        build_guidance("dalle")
+    with pytest.raises(UserError, match="trainer"):
+        build_guidance("recolor")

@@ -1,5 +1,6 @@
-"""Repaint trainer: an SD step end to end on tiny models, skipped non-finite steps, analytic convergence,
-cancel/pause, versions and undo, the NGPField path, and the `repaint` command's bad input."""
+"""Repaint trainer: an SD step end to end on tiny models (with the CLIP background loss), skipped non-finite
+steps, analytic convergence, cancel/pause, versions and undo, the NGPField path, the `repaint` command's bad
+input, and one set of defaults: the CLI's flags and the editor's Repaint panel reach the trainer as RepaintConfig."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,6 +8,8 @@ import pytest
 import torch
 
 from app.cli import main
+from core.repaint import registry
+from core.repaint.config import RepaintConfig
 from core.repaint.guidance import distillation_loss
 from core.repaint.trainer import RepaintTrainer
 from core.train.checkpoint import Checkpoint
@@ -28,16 +31,40 @@ def _trainer(scene, guidance, **kw):
 
 
 def test_sd_step_end_to_end_gradients_reach_only_the_field(scene, tmp_path_factory):
-    sd_path = cached("sd", tmp_path_factory)
-    tr = _trainer(scene, "sd", prompt="a blue ball", sd_path=sd_path, steps=5)
+    sd_path, clip_path = cached("sd", tmp_path_factory), cached("clip", tmp_path_factory)
+    tr = _trainer(scene, "sd", prompt="a blue ball", bg_prompt="leaves", sd_path=sd_path, clip_path=clip_path,
+                  steps=5)
     sd = tr.guidance.sd
     before = {k: v.clone() for k, v in tr.field.state_dict().items()}
     info = tr.step()
     assert not info["skipped"] and 20 <= info["t"] <= 980 and np.isfinite(info["loss"])
     assert not torch.equal(before["col"], tr.field.col.detach())  # the field moved
     assert all(not p.requires_grad and p.grad is None
-               for m in (sd.unet, sd.vae, sd.text_encoder) for p in m.parameters())
-    assert tr.clip is None  # lambda_clip 0: no CLIP loaded
+               for m in (sd.unet, sd.vae, sd.text_encoder, tr.clip.clip.model) for p in m.parameters())
+    # With SD and no weight given, the CLIP background loss runs at the official weight (the CLI's default).
+    assert tr.cfg.lambda_clip == 0.01 and tr.clip.prompt == "leaves" and np.isfinite(info["clip"])
+
+
+class ZeroGuidance:
+    """A guidance with a zero loss: whatever moves the field comes from the other terms."""
+
+    def loss(self, rgb, mask, view, step):
+        return {"loss": (rgb * 0).sum(), "skipped": False, "t": 0, "grad_norm": 0.0}
+
+
+@pytest.mark.parametrize("weight", [0.0, 1.0])
+def test_clip_background_loss_trains_the_field(scene, tmp_path_factory, weight):
+    """CLIP weight above 0 loads the (tiny) CLIP and its gradient alone reaches the field; 0 loads nothing."""
+    clip_path = cached("clip", tmp_path_factory)
+    tr = _trainer(scene, ZeroGuidance(), bg_prompt="leaves", clip_path=clip_path, lambda_clip=weight,
+                  lambda_unmask=0.0, steps=3, optimizer="official")
+    info = tr.step()
+    assert not info["skipped"]
+    grad = sum(float(p.grad.abs().sum()) for p in tr.field.parameters() if p.grad is not None)
+    if weight > 0:
+        assert tr.clip is not None and tr.clip.loaded and np.isfinite(info["clip"]) and grad > 0
+    else:
+        assert tr.clip is None and "clip" not in info and grad == 0
 
 
 class NaNGuidance:
@@ -202,3 +229,53 @@ def test_cli_bad_input(tmp_path, capsys, monkeypatch):
     assert "--color" in capsys.readouterr().err
     assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "blue", "--steps", "0"]) == 2
     assert main(["repaint", str(tmp_path / "missing"), "--guidance", "remove"]) == 2
+
+
+def test_one_set_of_defaults_for_the_cli_the_editor_and_the_trainer():
+    """The `repaint` flags default from RepaintConfig, the editor holds a RepaintConfig, and the CLIP weight's
+    default is one rule: the official 0.01 with Stable Diffusion, 0 for the offline and analytic edits."""
+    from app.cli import build_parser
+    from app.commands.repaint import CONFIG_FLAGS, config_from_args
+    from app.state import EditorState
+
+    args = build_parser().parse_args(["repaint", "ws"])
+    assert config_from_args(args) == RepaintConfig() == EditorState().repaint_config
+    for name in CONFIG_FLAGS:
+        assert getattr(args, name) == getattr(RepaintConfig(), name), name
+    given = config_from_args(build_parser().parse_args(["repaint", "ws", "--steps", "7", "--lambda-clip", "0"]))
+    assert given == RepaintConfig(steps=7, lambda_clip=0.0)
+    assert build_parser().parse_args(["repaint", "ws"]).guidance in registry.GUIDANCES
+    assert registry.clip_weight("sd", RepaintConfig()) == 0.01
+    assert all(registry.clip_weight(n, RepaintConfig()) == 0.0 for n in ("offline", "recolor", "remove", "analytic"))
+    assert registry.clip_weight("sd", RepaintConfig(lambda_clip=0.5)) == 0.5
+    assert registry.models_needed("sd", RepaintConfig()) == ("sd", "clip")
+    assert registry.models_needed("sd", RepaintConfig(lambda_clip=0.0)) == ("sd",)
+    assert registry.models_needed("recolor", RepaintConfig()) == ()
+
+
+def test_editor_repaint_fields_reach_the_trainer(scene_factory, tmp_path, tmp_path_factory):
+    """The Repaint panel's prompt, background prompt, guidance, model folders and steps go through the request
+    the editor submits and Engine.repaint to the RepaintTrainer, and the background prompt reaches the loss."""
+    from app.panels.repaint import repaint_request
+    from app.state import EditorState
+    from core.engine import Engine
+
+    sd_path, clip_path = cached("sd", tmp_path_factory), cached("clip", tmp_path_factory)
+    engine = Engine("cpu", features=False, depth=False)
+    engine.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
+    h, w = engine.scene.train.images[0].shape[:2]
+    yy, xx = np.mgrid[:h, :w]
+    engine.masks = [(yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (h / 4) ** 2 for _ in range(len(engine.scene.train))]
+    state = EditorState(prompt="a blue ball", bg_prompt="green leaves", backend="sd", sd_path=str(sd_path),
+                        clip_path=str(clip_path))
+    state.repaint_config.steps = 4
+    engine.repaint(**repaint_request(state))
+    tr = engine.edit
+    assert (tr.kind, tr.prompt, tr.bg_prompt, tr.cfg.steps) == ("sd", "a blue ball", "green leaves", 4)
+    assert tr.cfg.lambda_clip == 0.01 and tr.clip.prompt == "green leaves" and tr.clip.path == str(clip_path)
+    assert tr.guidance.sd is not None
+    engine.train_for(0.0)
+    assert tr.step_count == 1 and np.isfinite(tr.history[-1]["clip"])
+    state.repaint_config.lambda_clip = 0.0  # the panel's "CLIP weight" field set to 0: no CLIP
+    engine.repaint(**repaint_request(state))
+    assert engine.edit.clip is None and engine.edit.cfg.lambda_clip == 0.0
