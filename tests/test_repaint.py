@@ -227,6 +227,10 @@ def test_cli_bad_input(tmp_path, capsys, monkeypatch):
     assert "does not exist" in capsys.readouterr().err
     assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "a vase"]) == 2
     assert "--color" in capsys.readouterr().err
+    assert main(["repaint", str(ws.root), "--guidance", "offline", "--prompt", "a vase"]) == 2  # read as a recolour
+    assert "--color" in capsys.readouterr().err
+    assert main(["repaint", str(ws.root), "--guidance", "offline"]) == 2
+    assert "--prompt is empty" in capsys.readouterr().err
     assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "blue", "--steps", "0"]) == 2
     assert main(["repaint", str(tmp_path / "missing"), "--guidance", "remove"]) == 2
 

@@ -74,14 +74,12 @@ def check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--mask-dilation must not be negative, got {args.mask_dilation}")
     if registry.get(args.guidance).needs_prompt and not args.prompt.strip():
         raise UserError("--prompt is empty", hint="say what the selection should become, e.g. --prompt 'a blue rose'")
-    if args.guidance == "recolor" and args.color is None:
-        from core.repaint.colors import resolve_color
+    from core.repaint.colors import resolve_color
 
-        resolve_color(args.prompt, None)
-    elif args.color is not None:
-        from core.repaint.colors import resolve_color
-
+    if args.color is not None:
         resolve_color("", args.color)
+    elif registry.resolve(args.guidance, args.prompt).name == "recolor":  # also 'offline' read as a recolour
+        resolve_color(args.prompt, None)
 
 
 def open_workspace(path: str, device=None):
