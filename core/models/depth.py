@@ -10,7 +10,7 @@ import torch
 
 from core.device import get_device
 from core.errors import ModelNotFoundError
-from core.models.paths import how_to_set, model_type
+from core.models.paths import locate_model, model_type
 from core.models.vision import HALF, IMAGENET_MEAN, IMAGENET_STD, preprocessor_stats, quiet_transformers
 
 METRIC_TYPES = ("zoedepth",)  # model types that predict metric depth, not relative inverse depth
@@ -33,12 +33,11 @@ class DepthModel:
 
 
 def load_depth_model(path: str | os.PathLike, device: torch.device | str | None = None) -> DepthModel:
-    """Load a transformers depth-estimation folder (config.json + weights) frozen, in fp32, on `device`."""
+    """Load a transformers depth-estimation folder or cached model id (config.json + weights) frozen, in fp32,
+    on `device`."""
     from transformers import AutoModelForDepthEstimation
 
-    path = Path(path).expanduser()
-    if not path.is_dir():
-        raise ModelNotFoundError("the depth model folder does not exist", path=path, hint=how_to_set("depth"))
+    path = locate_model("depth", path)
     kind = model_type(path)
     dev = get_device(str(device)) if device is not None else get_device()
     try:

@@ -10,7 +10,7 @@ import torch
 
 from core.device import get_device
 from core.errors import ModelNotFoundError
-from core.models.paths import how_to_set, model_type
+from core.models.paths import locate_model, model_type
 from core.models.vision import quiet_transformers
 
 
@@ -25,12 +25,10 @@ class Sam:
 
 
 def load_sam(path: str | os.PathLike, device: torch.device | str | None = None) -> Sam:
-    """Load a SAM folder (config.json, weights, processor config) frozen, in fp32, on `device`."""
+    """Load a SAM folder or cached model id (config.json, weights, processor config) frozen, in fp32, on `device`."""
     from transformers import SamModel, SamProcessor
 
-    path = Path(path).expanduser()
-    if not path.is_dir():
-        raise ModelNotFoundError("the SAM model folder does not exist", path=path, hint=how_to_set("sam"))
+    path = locate_model("sam", path)
     kind = model_type(path)
     if kind != "sam":
         raise ModelNotFoundError(f"config.json's model_type is '{kind}', not 'sam'", path=path,

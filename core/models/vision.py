@@ -17,7 +17,7 @@ import torch
 
 from core.device import get_device
 from core.errors import ModelNotFoundError
-from core.models.paths import how_to_set, model_type
+from core.models.paths import locate_model, model_type
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -82,10 +82,8 @@ def preprocessor_stats(path: Path, mean, std) -> tuple[tuple, tuple, dict]:
 
 
 def load_vision_backbone(path: str | os.PathLike, device: torch.device | str | None = None) -> VisionBackbone:
-    """Load a DINOv2 / CLIP / SigLIP folder (config.json + weights) frozen, in fp32, on `device`."""
-    path = Path(path).expanduser()
-    if not path.is_dir():
-        raise ModelNotFoundError("the feature model folder does not exist", path=path, hint=how_to_set("feature"))
+    """Load a DINOv2 / CLIP / SigLIP folder or cached model id (config.json + weights) frozen, in fp32, on `device`."""
+    path = locate_model("feature", path)
     kind = model_type(path)
     if kind not in BACKBONES:
         raise ModelNotFoundError(f"config.json's model_type '{kind}' is not a supported feature backbone",

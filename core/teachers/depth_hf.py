@@ -3,7 +3,6 @@ sparse depth by core.teachers.depth_onnx.aligned_monocular_depth exactly as the 
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -23,7 +22,7 @@ class HFDepthTeacher:
     def __init__(self, path: str | os.PathLike, input_size: tuple[int, int] | None = None,
                  device: torch.device | str | None = None):
         self.net: DepthModel = load_depth_model(path, device)
-        self.path = Path(path)
+        self.path = self.net.path
         self.input_size = None if input_size is None else (int(input_size[0]), int(input_size[1]))
         self.inverse = self.net.inverse
         self.name = f"hf-depth-{self.net.model_type}"

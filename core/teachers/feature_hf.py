@@ -10,7 +10,6 @@ prompt's embedding can be compared with it; the teacher then also `encode_text`s
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -38,7 +37,7 @@ class HFFeatureTeacher:
     def __init__(self, path: str | os.PathLike, input_size: tuple[int, int] | None = None,
                  device: torch.device | str | None = None, label: str | None = None):
         self.backbone: VisionBackbone = load_vision_backbone(path, device)
-        self.path = Path(path)
+        self.path = self.backbone.path
         p = self.backbone.patch_size
         if input_size is not None and (input_size[0] % p or input_size[1] % p):
             input_size = (max(p, round(input_size[0] / p) * p), max(p, round(input_size[1] / p) * p))

@@ -3,7 +3,8 @@ field) gives SAM a box and a point prompt, and SAM's mask, which follows the ima
 The refined masks are then distilled as the field's own are."""
 from __future__ import annotations
 
-from typing import Sequence
+import os
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -13,6 +14,8 @@ from core.teachers.base import check_image
 
 BOX_MARGIN = 0.1     # SAM's mask is kept inside the prompt box grown by this fraction of its size per side
 MIN_AGREEMENT = 0.25  # below this IoU with the field's mask SAM is taken to have missed, and the mask is kept
+SAM_SETTING = "sam_path"  # null or absent: no refinement; else the SAM model's path or cached model id
+OFF = "none"              # `--sam-path none`: refinement off for the workspace
 
 
 def mask_prompt(mask: np.ndarray) -> tuple[tuple[int, int, int, int], tuple[int, int]] | None:
@@ -82,3 +85,28 @@ def refine_masks(images: Sequence[np.ndarray], masks: Sequence[np.ndarray], mode
         refined = sam_mask(image, box, point, model) & grown_box(box, *mask.shape)
         out.append(refined if _iou(refined, mask) >= min_agreement else mask.copy())
     return out
+
+
+def workspace_refiner(ws, images: Sequence[np.ndarray], flag: str | None = None,
+                      environ=None) -> Callable[[list[np.ndarray]], list[np.ndarray]] | None:
+    """The mask refinement of a workspace: SAM from `flag` ('none' turns it off) > $REPAINT_NERF_SAM_PATH >
+    $REPAINT_NERF_MODELS/sam > the workspace's 'sam_path' setting, bound to `images`; None when no SAM is
+    chosen. A model given by the flag is saved in the settings once it loads."""
+    from pathlib import Path
+
+    from core.models.paths import ROOT_ENV, model_kind, resolve_model_path
+    from core.models.sam import load_sam
+
+    env = os.environ if environ is None else environ
+    if flag == OFF:
+        ws.update_settings(**{SAM_SETTING: None})
+        return None
+    root = env.get(ROOT_ENV)
+    if not (flag or env.get(model_kind("sam").env) or ws.settings.get(SAM_SETTING)
+            or (root and (Path(root).expanduser() / "sam").exists())):
+        return None
+    sam = load_sam(resolve_model_path("sam", flag, ws.settings, env))
+    if flag:
+        ws.update_settings(**{SAM_SETTING: str(Path(flag).expanduser().resolve()) if Path(flag).expanduser().exists()
+                              else str(flag)})
+    return lambda masks: refine_masks(images, masks, sam)
