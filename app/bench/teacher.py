@@ -178,10 +178,12 @@ def photo_row(label: str, res: dict, image, sim, mask, box, refined=None, height
     scale = height / image.shape[0]
     size = (int(round(image.shape[1] * scale)), height)
     row = np.concatenate([cv2.resize(np.ascontiguousarray(t), size, interpolation=cv2.INTER_AREA) for t in tiles], 1)
-    text = f"{label[:40]}: mask@{res['threshold']:.2f} = {100 * res['area_fraction']:.1f}% of the image"
-    cv2.putText(row, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(row, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-    return row
+    text = f"{label[-60:]}: mask@{res['threshold']:.2f} covers {100 * res['area_fraction']:.1f}% of the image"
+    if "area_fraction_refined" in res:
+        text += f"; SAM-refined {100 * res['area_fraction_refined']:.1f}%"
+    strip = np.full((26, row.shape[1], 3), 255, np.uint8)
+    cv2.putText(strip, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([strip, row], 0)
 
 
 def _overlay(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
