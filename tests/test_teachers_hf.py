@@ -331,3 +331,24 @@ def test_select_with_sam_path_refines_and_saves_the_choice(clip_ws, scene, model
     assert "--sam-path" in err and "REPAINT_NERF_SAM_PATH" in err and "Traceback" not in err
     with pytest.raises(ModelNotFoundError, match="not 'sam'"):
         workspace_refiner(clip_ws, scene[1].train.images, str(models["dpt"]))
+
+
+def test_editor_masks_use_the_workspaces_sam(clip_ws, scene, monkeypatch):
+    import core.teachers.sam_refine as sam_refine
+    from core.engine import Engine
+
+    calls = []
+    real = sam_refine.refine_masks
+    monkeypatch.setattr(sam_refine, "refine_masks", lambda images, masks, sam: calls.append(len(masks)) or
+                        real(images, masks, sam))
+    clip_ws.update_settings(sam_path=IDS["sam"])
+    try:
+        eng = Engine("cpu")
+        eng.load(clip_ws.root)
+        eng.select_text(eng.info()["cameras"][0], "a red ball")
+        assert eng.masks_for_all_views(0.5) == len(scene[1].train) and calls == [len(scene[1].train)]
+        clip_ws.update_settings(sam_path=None)
+        eng.masks_for_all_views(0.5)
+        assert calls == [len(scene[1].train)]  # no SAM chosen: the field's masks as they are
+    finally:
+        clip_ws.update_settings(sam_path=None)
