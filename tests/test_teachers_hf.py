@@ -147,11 +147,16 @@ def test_maskclip_features_live_in_the_text_space(models):
     assert t.clip is not None and t.clip.tokenizer is not None
 
 
-def test_unsupported_or_broken_feature_model_is_clear(models, tmp_path):
+def test_unsupported_or_broken_feature_model_is_clear(models, tmp_path, capsys, scene_factory):
+    from app.cli import main
     from core.teachers.stage1_targets import FeatureModel, make_feature_teacher
 
     with pytest.raises(ModelNotFoundError, match="model_type 'sam' is not a supported feature backbone"):
         make_feature_teacher(FeatureModel(str(models["sam"])))
+    ws = tmp_path / "ws"
+    assert main(["train", str(scene_factory("demo", size=32, views=12)), "--workspace", str(ws),
+                 "--feature-model", IDS["sam"]]) == 2
+    assert "not a supported feature backbone" in capsys.readouterr().err and not ws.exists()  # checked first
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "config.json").write_text(json.dumps({"model_type": "dinov2"}))
@@ -324,8 +329,8 @@ def test_select_with_sam_path_refines_and_saves_the_choice(clip_ws, scene, model
     assert "SAM-refined" in capsys.readouterr().out and clip_ws.settings["sam_path"] == IDS["sam"]
     assert len(load_masks(tmp_path / "a")) == len(scene[1].train)
     assert workspace_refiner(clip_ws, scene[1].train.images) is not None  # the saved choice, next time
-    assert main(base + ["--out", str(tmp_path / "b"), "--sam-path", "none"]) == 0
-    assert "SAM-refined" not in capsys.readouterr().out and clip_ws.settings["sam_path"] is None
+    assert workspace_refiner(clip_ws, scene[1].train.images, "none") is None and clip_ws.settings["sam_path"] is None
+    assert workspace_refiner(clip_ws, scene[1].train.images) is None
     assert main(base + ["--out", str(tmp_path / "c"), "--sam-path", str(tmp_path / "nosam")]) == 2
     err = capsys.readouterr().err
     assert "--sam-path" in err and "REPAINT_NERF_SAM_PATH" in err and "Traceback" not in err
@@ -347,8 +352,5 @@ def test_editor_masks_use_the_workspaces_sam(clip_ws, scene, monkeypatch):
         eng.load(clip_ws.root)
         eng.select_text(eng.info()["cameras"][0], "a red ball")
         assert eng.masks_for_all_views(0.5) == len(scene[1].train) and calls == [len(scene[1].train)]
-        clip_ws.update_settings(sam_path=None)
-        eng.masks_for_all_views(0.5)
-        assert calls == [len(scene[1].train)]  # no SAM chosen: the field's masks as they are
     finally:
         clip_ws.update_settings(sam_path=None)

@@ -116,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
     field, grid, header, scene = load_trained(ws, args.device)
     cams = scene.field_cameras("train")
     _check_patches(patches, cams, args.view)
+    from core.teachers.sam_refine import workspace_refiner
+
+    refine = workspace_refiner(ws, scene.train.images, args.sam_path)  # a missing SAM fails before any render
 
     t0 = time.perf_counter()
     cache = ViewCache(field, grid, cams)
@@ -130,9 +133,6 @@ def run(args: argparse.Namespace) -> int:
         for p in patches:
             sel.add_patch(feat, p)
     names = list(scene.train.names)
-    from core.teachers.sam_refine import workspace_refiner
-
-    refine = workspace_refiner(ws, scene.train.images, args.sam_path)
     masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
     sel_path = sel.save(ws)
     out = Path(args.out)

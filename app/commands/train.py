@@ -78,10 +78,13 @@ def check_model_flags(args: argparse.Namespace) -> None:
     """Fail on a missing --feature-model / --depth-model (file, folder or cached id) before any workspace is
     touched; a broken one fails when its teacher loads, also before the workspace changes."""
     from core.models.paths import locate_model, model_type
+    from core.models.vision import check_backbone
     from core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
 
     if args.feature_model and args.feature_model != DEFAULT_FEATURE and not args.no_features:
-        model_type(locate_model("feature", args.feature_model))
+        path = locate_model("feature", args.feature_model)
+        if model_type(path) != "onnx":
+            check_backbone(path)
     if args.depth_model and args.depth_model != NO_DEPTH_MODEL and not args.no_depth:
         model_type(locate_model("depth", args.depth_model))
 

@@ -81,13 +81,19 @@ def preprocessor_stats(path: Path, mean, std) -> tuple[tuple, tuple, dict]:
     return tuple(cfg.get("image_mean", mean)), tuple(cfg.get("image_std", std)), cfg
 
 
-def load_vision_backbone(path: str | os.PathLike, device: torch.device | str | None = None) -> VisionBackbone:
-    """Load a DINOv2 / CLIP / SigLIP folder or cached model id (config.json + weights) frozen, in fp32, on `device`."""
-    path = locate_model("feature", path)
+def check_backbone(path: Path) -> str:
+    """config.json's model_type of a supported backbone folder, else a ModelNotFoundError listing them."""
     kind = model_type(path)
     if kind not in BACKBONES:
         raise ModelNotFoundError(f"config.json's model_type '{kind}' is not a supported feature backbone",
                                  path=path, hint=f"use one of: {', '.join(sorted(BACKBONES))} (or an ONNX export)")
+    return kind
+
+
+def load_vision_backbone(path: str | os.PathLike, device: torch.device | str | None = None) -> VisionBackbone:
+    """Load a DINOv2 / CLIP / SigLIP folder or cached model id (config.json + weights) frozen, in fp32, on `device`."""
+    path = locate_model("feature", path)
+    kind = check_backbone(path)
     family, mean, std = BACKBONES[kind]
     dev = get_device(str(device)) if device is not None else get_device()
     clip = None
