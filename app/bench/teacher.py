@@ -187,11 +187,11 @@ def photo_row(label: str, res: dict, image, sim, mask, box, refined=None, height
 
 
 def _overlay(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """The photo where the mask is on, dimmed and tinted red where it is off."""
-    out = image.astype(np.float32)
-    off = ~np.asarray(mask, bool)
-    out[off] = out[off] * 0.25 + np.array([90, 0, 0], np.float32)
-    return np.clip(out, 0, 255).astype(np.uint8)
+    """The photo tinted green where the mask is on and dimmed to grey where it is off."""
+    img = image.astype(np.float32)
+    grey = np.repeat(img.mean(-1, keepdims=True), 3, -1) * 0.4
+    on = img * 0.45 + np.array([0, 255, 0], np.float32) * 0.55
+    return np.clip(np.where(np.asarray(mask, bool)[..., None], on, grey), 0, 255).astype(np.uint8)
 
 
 def picture_row(images, sims, gts, threshold, view, box, n: int = 4) -> np.ndarray:
