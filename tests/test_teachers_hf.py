@@ -93,7 +93,7 @@ def test_feature_teacher_from_folder_and_cache(name, models):
     assert f.shape == (40, 56, t.dim) and f.dtype == np.float32 and np.isfinite(f).all()
     np.testing.assert_allclose(np.linalg.norm(f, axis=-1), 1.0, atol=1e-5)
     assert t.dim == (8 if name == "clip" else 16)  # CLIP: MaskCLIP features in the 8-dim joint space
-    assert t.model_input(40, 56) == (t.backbone.image_size, 48)  # short side = image size, aspect kept, x8
+    assert t.model_input(40, 56) == (128, 176)  # short side 16 patches (over the 32 px image size), aspect kept
     assert f.std(axis=(0, 1)).max() > 1e-3  # the features vary over the image
     if name in IDS:
         cached = make_feature_teacher(FeatureModel(IDS[name]))
@@ -117,12 +117,12 @@ def test_dinov2_features_are_its_patch_tokens_upsampled(models):
 
     t = HFFeatureTeacher(models["dinov2_reg"])
     img = _image(24, 32)
-    x = torch.from_numpy(prepare_input(img, (32, 40), (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)))
-    assert t.model_input(24, 32) == (32, 40)
+    x = torch.from_numpy(prepare_input(img, (128, 168), (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)))
+    assert t.model_input(24, 32) == (128, 168)  # 128 x 170.7 -> patch multiples
     ref_model = Dinov2WithRegistersModel.from_pretrained(models["dinov2_reg"], local_files_only=True).eval()
     with torch.no_grad():
         tokens = ref_model(pixel_values=x).last_hidden_state[0, 1 + 2:]  # after the class and 2 register tokens
-    np.testing.assert_allclose(t(img), _upsampled_unit(tokens, (4, 5), (24, 32)), atol=1e-5)
+    np.testing.assert_allclose(t(img), _upsampled_unit(tokens, (16, 21), (24, 32)), atol=1e-5)
 
 
 def test_maskclip_features_live_in_the_text_space(models):
@@ -136,14 +136,16 @@ def test_maskclip_features_live_in_the_text_space(models):
     t = HFFeatureTeacher(models["clip"])
     img = _image(32, 32)
     m = CLIPModel.from_pretrained(models["clip"], local_files_only=True).eval()
-    x = torch.from_numpy(prepare_input(img, (32, 32), t.backbone.mean, t.backbone.std))
+    assert t.model_input(32, 32) == (128, 128)
+    x = torch.from_numpy(prepare_input(img, (128, 128), t.backbone.mean, t.backbone.std))
     with torch.no_grad():
-        h = m.vision_model(pixel_values=x, output_hidden_states=True).hidden_states[-2]
+        h = m.vision_model(pixel_values=x, output_hidden_states=True,
+                           interpolate_pos_encoding=True).hidden_states[-2]
         last = m.vision_model.encoder.layers[-1]
         v = last.self_attn.out_proj(last.self_attn.v_proj(last.layer_norm1(h)))
         tokens = m.visual_projection(m.vision_model.post_layernorm(v))[0, 1:]
     assert tokens.shape[-1] == m.config.projection_dim == t.dim
-    np.testing.assert_allclose(t(img), _upsampled_unit(tokens, (4, 4), (32, 32)), atol=1e-5)
+    np.testing.assert_allclose(t(img), _upsampled_unit(tokens, (16, 16), (32, 32)), atol=1e-5)
     assert t.clip is not None and t.clip.tokenizer is not None
 
 

@@ -20,6 +20,7 @@ from core.teachers._onnx import prepare_input, resize_map
 from core.teachers.base import check_image, l2_normalize
 
 MAX_SIDE = 448  # default input short side cap: DINOv2 configs say 518, which costs ~5x a 224 pass on a CPU
+MIN_GRID = 16   # default input short side floor in patches: a ViT-B/32 CLIP at its 224 px would give 7 only
 
 
 def input_hw(height: int, width: int, patch: int, short_side: int) -> tuple[int, int]:
@@ -32,7 +33,8 @@ def input_hw(height: int, width: int, patch: int, short_side: int) -> tuple[int,
 
 class HFFeatureTeacher:
     """Dense unit features (H, W, D) of a local transformers backbone folder. `input_size` (H, W) fixes the
-    model input; by default the short side is the model's image size (at most MAX_SIDE), aspect kept."""
+    model input; by default the short side is the model's image size, raised to MIN_GRID patches and capped
+    at MAX_SIDE, aspect kept."""
 
     def __init__(self, path: str | os.PathLike, input_size: tuple[int, int] | None = None,
                  device: torch.device | str | None = None, label: str | None = None):
@@ -53,14 +55,14 @@ class HFFeatureTeacher:
         weights = sorted(self.path.glob("*.safetensors")) + sorted(self.path.glob("*.bin"))
         return {"path": str(self.path.resolve()), "model_type": self.backbone.model_type,
                 "weights": [(w.name, w.stat().st_size, int(w.stat().st_mtime)) for w in weights],
-                "input_size": self.input_size, "maskclip": self.maskclip, "max_side": MAX_SIDE}
+                "input_size": self.input_size, "maskclip": self.maskclip, "sides": (MIN_GRID, MAX_SIDE)}
 
     def model_input(self, height: int, width: int) -> tuple[int, int]:
         """The (H, W) an image of this size is fed at."""
         if self.input_size is not None:
             return self.input_size
         b = self.backbone
-        return input_hw(height, width, b.patch_size, min(b.image_size, MAX_SIDE))
+        return input_hw(height, width, b.patch_size, min(max(b.image_size, MIN_GRID * b.patch_size), MAX_SIDE))
 
     @torch.no_grad()
     def __call__(self, image: np.ndarray) -> np.ndarray:
