@@ -159,6 +159,9 @@ def test_unsupported_or_broken_feature_model_is_clear(models, tmp_path, capsys, 
     assert main(["train", str(scene_factory("demo", size=32, views=12)), "--workspace", str(ws),
                  "--feature-model", IDS["sam"]]) == 2
     assert "not a supported feature backbone" in capsys.readouterr().err and not ws.exists()  # checked first
+    assert main(["train", str(scene_factory("demo", size=32, views=12)), "--workspace", str(ws),
+                 "--depth-model", str(models["dinov2"])]) == 2
+    assert "as a depth-estimation model" in capsys.readouterr().err and not ws.exists()
     broken = tmp_path / "broken"
     broken.mkdir()
     (broken / "config.json").write_text(json.dumps({"model_type": "dinov2"}))

@@ -78,6 +78,7 @@ def check_model_flags(args: argparse.Namespace) -> None:
     """Fail on a missing --feature-model / --depth-model (file, folder or cached id) before any workspace is
     touched; a broken one fails when its teacher loads, also before the workspace changes."""
     from core.models.paths import locate_model, model_type
+    from core.models.depth import check_depth_model
     from core.models.vision import check_backbone
     from core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
 
@@ -86,7 +87,9 @@ def check_model_flags(args: argparse.Namespace) -> None:
         if model_type(path) != "onnx":
             check_backbone(path)
     if args.depth_model and args.depth_model != NO_DEPTH_MODEL and not args.no_depth:
-        model_type(locate_model("depth", args.depth_model))
+        path = locate_model("depth", args.depth_model)
+        if model_type(path) != "onnx":
+            check_depth_model(path)
 
 
 def run(args: argparse.Namespace) -> int:

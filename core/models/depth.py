@@ -32,13 +32,25 @@ class DepthModel:
     path: Path
 
 
+def check_depth_model(path: Path) -> str:
+    """config.json's model_type of a folder AutoModelForDepthEstimation can load, else a ModelNotFoundError."""
+    from transformers.models.auto.modeling_auto import MODEL_FOR_DEPTH_ESTIMATION_MAPPING_NAMES as known
+
+    kind = model_type(path)
+    if kind not in known:
+        raise ModelNotFoundError(f"could not load '{kind}' as a depth-estimation model (known: "
+                                 f"{', '.join(sorted(known))})", path=path,
+                                 hint="point --depth-model at a DPT or Depth Anything folder (or an ONNX export)")
+    return kind
+
+
 def load_depth_model(path: str | os.PathLike, device: torch.device | str | None = None) -> DepthModel:
     """Load a transformers depth-estimation folder or cached model id (config.json + weights) frozen, in fp32,
     on `device`."""
     from transformers import AutoModelForDepthEstimation
 
     path = locate_model("depth", path)
-    kind = model_type(path)
+    kind = check_depth_model(path)
     dev = get_device(str(device)) if device is not None else get_device()
     try:
         with quiet_transformers():
