@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])
     print(f"{_describe(args, patches)}, threshold {threshold:.2f}, 3D clean-up "
-          f"{'on' if sel.cleanup else 'off'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering {100 * cover:.1f}% of pixels on average "
+          f"{'on' if sel.cleanup else 'off'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering "
+          f"{100 * cover:.1f}% of pixels on average "
           f"({time.perf_counter() - t0:.1f} s)")
     print(f"wrote {out} (mask_0000.png ...), {ws.masks_dir} and {sel_path}")
     return 0

@@ -58,7 +58,8 @@ def load_depth_model(path: str | os.PathLike, device: torch.device | str | None 
     except (OSError, ValueError, KeyError) as exc:
         raise ModelNotFoundError(f"could not load '{kind}' as a depth-estimation model: "
                                  f"{str(exc).splitlines()[0][:300]}", path=path,
-                                 hint="point --depth-model at a DPT or Depth Anything folder (or an ONNX export)") from exc
+                                 hint="point --depth-model at a DPT or Depth Anything folder (or an ONNX "
+                                      "export)") from exc
     model.eval().requires_grad_(False).to(dev)
     cfg = model.config
     backbone = getattr(cfg, "backbone_config", None) or cfg

@@ -135,7 +135,8 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
     fm, source = choice
     if (input_size is not None or norm is not None) and fm.path is None:
         raise UserError("--feature-size and --feature-norm describe a feature model, and none is chosen",
-                        hint="pass --feature-model PATH.onnx / FOLDER / MODEL_ID too (or set REPAINT_NERF_FEATURE_MODEL)")
+                        hint="pass --feature-model PATH.onnx / FOLDER / MODEL_ID too "
+                             "(or set REPAINT_NERF_FEATURE_MODEL)")
     if fm.path is not None:
         fm = FeatureModel(fm.path, input_size if input_size is not None else fm.input_size,
                           check_norm(norm if norm is not None else fm.norm))
@@ -163,7 +164,8 @@ def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
         raise ModelNotFoundError(f"the workspace's feature model (settings.json '{FEATURE_SETTING}') cannot be "
                                  f"used: {str(exc).splitlines()[0]}",
                                  hint="move the model back, or choose again: repaint-nerf train SCENE --workspace "
-                                      "WS --feature-model PATH.onnx|FOLDER|MODEL_ID (or --feature-model default)") from exc
+                                      "WS --feature-model PATH.onnx|FOLDER|MODEL_ID (or --feature-model "
+                                      "default)") from exc
 
 
 def workspace_feature_teacher(ws):
