@@ -370,6 +370,8 @@ class Engine:
         if self.selection is None:
             raise UserError("nothing is selected", hint="drag a rectangle over an object in the viewport first")
         sel = _backend("select")
+        from core.teachers.sam_refine import workspace_refiner  # the workspace's SAM choice (select --sam-path)
+
         self.selection.threshold = sel.masks.check_threshold(threshold)
         was_training = self.field.training
         self.field.eval()
@@ -380,7 +382,8 @@ class Engine:
                 masks = sel.masks_for_views(self.field, self.grid, cams, self.selection, threshold,
                                             workspace=self.workspace, cache=sel.ViewCache(self.field, self.grid, cams,
                                                                                           render_opts=opts),
-                                            names=list(self.scene.train.names or []) or None)
+                                            names=list(self.scene.train.names or []) or None,
+                                            refine=workspace_refiner(self.workspace, self.scene.train.images))
         finally:
             self.field.train(was_training)
         self.selection.save(self.workspace)

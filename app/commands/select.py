@@ -1,6 +1,7 @@
 """`repaint-nerf select WS --view I --patch x0,y0,x1,y1 [--add ...] [--sub ...] --out DIR` (or `--text PROMPT`
 with a CLIP-aligned teacher): select an object through the workspace's feature field; writes the selection
-and every training view's mask (into DIR and into the workspace, where the repaint reads them)."""
+and every training view's mask (into DIR and into the workspace, where the repaint reads them), each
+optionally refined by SAM (`--sam-path`) prompted with that view's mask."""
 from __future__ import annotations
 
 import argparse
@@ -16,10 +17,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--view", type=int, default=None, help="training view index the patches are drawn in")
     query = p.add_mutually_exclusive_group(required=True)
     query.add_argument("--patch", help="x0,y0,x1,y1 in pixels (x1, y1 exclusive): the object's patch (needs --view)")
-    query.add_argument("--text", help="what to select, e.g. 'a red ball': needs a workspace trained with a "
-                                      "CLIP-aligned --feature-model (LSeg) and that CLIP model (--clip-path)")
+    query.add_argument("--text", help="what to select, e.g. 'a red ball': needs a workspace trained with a CLIP "
+                                      "--feature-model (MaskCLIP), or an LSeg ONNX one and its CLIP (--clip-path)")
     p.add_argument("--clip-path", default=None,
-                   help="local CLIP folder of the teacher's feature space, for --text (else $REPAINT_NERF_CLIP_PATH)")
+                   help="local CLIP folder of an ONNX teacher's feature space, for --text (else "
+                        "$REPAINT_NERF_CLIP_PATH); a CLIP feature teacher uses its own")
+    p.add_argument("--sam-path", default=None, metavar="MODEL",
+                   help="refine each view's mask with a local SAM (transformers SamModel folder or cached model id) "
+                        "prompted by the mask's box and inside point; saved for the workspace ('none' turns it "
+                        "off; default: the workspace's choice, else $REPAINT_NERF_SAM_PATH)")
     p.add_argument("--add", action="append", default=[], metavar="x0,y0,x1,y1",
                    help="another positive patch in the same view (repeatable): selects its look-alikes too")
     p.add_argument("--sub", action="append", default=[], metavar="x0,y0,x1,y1",
@@ -110,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
     field, grid, header, scene = load_trained(ws, args.device)
     cams = scene.field_cameras("train")
     _check_patches(patches, cams, args.view)
+    from core.teachers.sam_refine import workspace_refiner
+
+    refine = workspace_refiner(ws, scene.train.images, args.sam_path)  # a missing SAM fails before any render
 
     t0 = time.perf_counter()
     cache = ViewCache(field, grid, cams)
@@ -124,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         for p in patches:
             sel.add_patch(feat, p)
     names = list(scene.train.names)
-    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names)
+    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
     sel_path = sel.save(ws)
     out = Path(args.out)
     write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})
@@ -134,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])
     print(f"{_describe(args, patches)}, threshold {threshold:.2f}, 3D clean-up "
-          f"{'on' if sel.cleanup else 'off'}: {len(masks)} masks covering {100 * cover:.1f}% of pixels on average "
+          f"{'on' if sel.cleanup else 'off'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering "
+          f"{100 * cover:.1f}% of pixels on average "
           f"({time.perf_counter() - t0:.1f} s)")
     print(f"wrote {out} (mask_0000.png ...), {ws.masks_dir} and {sel_path}")
     return 0

@@ -31,16 +31,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-features", action="store_true",
                    help="skip the semantic feature field (faster; the workspace then cannot be selected in)")
     p.add_argument("--no-depth", action="store_true", help="skip the sparse depth priors")
-    p.add_argument("--feature-model", default=None, metavar="PATH",
-                   help="ONNX dense feature teacher (LSeg, CLIP-dense, DINO), or 'default' for the built-in one "
-                        "(default: the workspace's choice, else $REPAINT_NERF_FEATURE_MODEL, else built-in)")
+    p.add_argument("--feature-model", default=None, metavar="MODEL",
+                   help="dense feature teacher: an ONNX export (LSeg, CLIP-dense, DINO), a transformers folder or a "
+                        "model id in the local Hugging Face cache (DINOv2, SigLIP, or CLIP: MaskCLIP features that "
+                        "also select by text), or 'default' for the built-in one (default: the workspace's choice, "
+                        "else $REPAINT_NERF_FEATURE_MODEL, else built-in); nothing is downloaded")
     p.add_argument("--feature-size", default=None, metavar="WxH",
-                   help="the feature model's input size in pixels (default: each image's own size)")
+                   help="the feature model's input size in pixels (default: ONNX each image's own size; "
+                        "transformers the model's image size on the short side, aspect kept, patch multiples)")
     p.add_argument("--feature-norm", default=None, choices=("imagenet", "clip"),
-                   help="the feature model's input mean/std (default imagenet; clip for CLIP-space models)")
-    p.add_argument("--depth-model", default=None, metavar="PATH",
-                   help="ONNX monocular depth model (MiDaS-style) aligned to the sparse depth, or 'none' "
-                        "(default: the workspace's choice, else $REPAINT_NERF_DEPTH_MODEL, else sparse only)")
+                   help="an ONNX feature model's input mean/std (default imagenet; clip for CLIP-space models); "
+                        "transformers models bring their own")
+    p.add_argument("--depth-model", default=None, metavar="MODEL",
+                   help="monocular depth model aligned to the sparse depth: an ONNX export (MiDaS-style), a "
+                        "transformers DPT / Depth Anything folder or cached model id, or 'none' (default: the "
+                        "workspace's choice, else $REPAINT_NERF_DEPTH_MODEL, else sparse only)")
     p.add_argument("--checkpoint-every", type=float, default=120.0, help="seconds between checkpoints (0 = at the end)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -70,16 +75,21 @@ def parse_size(text: str | None, flag: str = "--feature-size") -> tuple[int, int
 
 
 def check_model_flags(args: argparse.Namespace) -> None:
-    """Fail on a missing --feature-model / --depth-model file before any workspace is touched."""
-    from core.teachers._onnx import resolve_model
-    from core.teachers.depth_onnx import ENV_DEPTH_MODEL
-    from core.teachers.feature_onnx import ENV_FEATURE_MODEL
+    """Fail on a missing --feature-model / --depth-model (file, folder or cached id) before any workspace is
+    touched; a broken one fails when its teacher loads, also before the workspace changes."""
+    from core.models.paths import locate_model, model_type
+    from core.models.depth import check_depth_model
+    from core.models.vision import check_backbone
     from core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
 
     if args.feature_model and args.feature_model != DEFAULT_FEATURE and not args.no_features:
-        resolve_model(args.feature_model, ENV_FEATURE_MODEL, "--feature-model", "feature")
+        path = locate_model("feature", args.feature_model)
+        if model_type(path) != "onnx":
+            check_backbone(path)
     if args.depth_model and args.depth_model != NO_DEPTH_MODEL and not args.no_depth:
-        resolve_model(args.depth_model, ENV_DEPTH_MODEL, "--depth-model", "depth")
+        path = locate_model("depth", args.depth_model)
+        if model_type(path) != "onnx":
+            check_depth_model(path)
 
 
 def run(args: argparse.Namespace) -> int:

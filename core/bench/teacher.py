@@ -1,79 +1,35 @@
-"""`repaint-nerf bench teacher`: the 2D ceiling of mask quality for the default feature teacher.
+"""Feature-teacher quality (measurement; the `bench teacher` driver is app/bench/teacher.py).
 
 Per preset (or a given scene): a patch placed inside the edited object in one training view, the
 cosine similarity of every view's teacher features to the patch mean, mask IoU against the
 ground-truth object masks across views at the default threshold, the best threshold, the same
 after compression (the K-dim codes the field learns), teacher time per image and MB per image.
+On a photograph (no ground truth): the mask a patch gives, as the fraction of the image it covers.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import tempfile
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-HELP = "feature-teacher quality: patch-query mask IoU against ground truth, time and storage per image"
 PRESETS = ("demo", "similar", "thin", "forward", "room360", "replace")
 THRESHOLDS = np.round(np.arange(0.05, 0.96, 0.05), 2)
+# A patch on Grace Hopper's jacket in matplotlib's sample_data/grace_hopper.jpg, as image fractions x0, y0, x1, y1
+JACKET_PATCH = (0.12, 0.88, 0.22, 0.96)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", action="append", choices=PRESETS, help="synthetic preset (repeatable; default: all)")
-    p.add_argument("--scene", default=None, help="a scene folder with gt/ masks (instead of generated presets)")
-    p.add_argument("--size", type=int, default=128, help="image size of generated presets")
-    p.add_argument("--views", type=int, default=16, help="training views of generated presets")
-    p.add_argument("--object", type=int, default=None, help="object id (default: gt/objects.json edited_object_id)")
-    p.add_argument("--json", default="bench_teacher.json", help="output JSON path")
-    p.add_argument("--png", default=None, help="output PNG of similarity maps (default: beside the JSON)")
-
-
-def run(args: argparse.Namespace) -> int:
-    from core.errors import UserError
-
-    out = Path(args.json)
-    png = Path(args.png) if args.png else out.with_suffix(".png")
-    results, rows = {}, []
-    with tempfile.TemporaryDirectory(prefix="bench_teacher_") as tmp:
-        if args.scene:
-            if not (Path(args.scene) / "gt" / "objects.json").is_file():
-                raise UserError("scene has no gt/objects.json (ground-truth masks are needed)", args.scene,
-                                "use a scene written by `repaint-nerf make-scene`")
-            items = [(Path(args.scene).name, Path(args.scene))]
-        else:
-            from core.synth.generate import make_scene
-
-            items = [(p, make_scene(p, Path(tmp) / p, size=args.size, views=args.views, seed=0, test_views=1))
-                     for p in (args.preset or PRESETS)]
-        for name, root in items:
-            res, row = evaluate_scene(root, Path(tmp) / f"cache_{name}", args.object)
-            results[name] = res
-            rows.append(row)
-            print(f"{name:9s} iou@{res['threshold']:.2f}={res['iou']:.3f} best={res['best_iou']:.3f}"
-                  f"@{res['best_threshold']:.2f} compressed={res['iou_compressed']:.3f} "
-                  f"{res['ms_per_image']:.0f} ms/img {res['mb_per_image_504x378']:.2f} MB/img@504x378")
-    from core.device import describe
-
-    summary = {"min_iou": min(r["iou"] for r in results.values()),
-               "min_iou_compressed": min(r["iou_compressed"] for r in results.values())}
-    doc = {"benchmark": "teacher", "device": describe(), "teacher": "default", "summary": summary,
-           "presets": results, "timing_note": "CPU wall-clock on a shared machine: rough"}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=2) + "\n")
-    if rows:
-        cv2.imwrite(str(png), np.concatenate([_pad(r, max(x.shape[1] for x in rows)) for r in rows], 0)[..., ::-1])
-    print(f"wrote {out} and {png}")
-    return 0
-
-
-def evaluate_scene(root: Path, cache: Path, object_id: int | None = None) -> tuple[dict, np.ndarray]:
-    """Teacher quality on one scene folder (train split). Returns (figures, an RGB picture row)."""
+def evaluate_scene(root: Path, cache: Path, object_id: int | None = None, teacher=None,
+                   threshold: float | None = None) -> tuple[dict, dict]:
+    """Quality of `teacher` (default: the built-in one) on one scene folder (train split). Returns (figures,
+    maps for a picture: images, sims, gts, view, box, threshold)."""
     from core.scene.loaders.detect import load_scene
     from core.teachers.cache import build_feature_store
     from core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
+
+    threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
 
     scene = load_scene(root, splits=("train",))
     meta = json.loads((root / "gt" / "objects.json").read_text())
@@ -82,7 +38,7 @@ def evaluate_scene(root: Path, cache: Path, object_id: int | None = None) -> tup
     masks = [cv2.imread(str(root / "gt" / "train" / f"{Path(n).stem}_mask.png"), cv2.IMREAD_UNCHANGED)
              for n in scene.train.names]
     masks = [m if m.ndim == 2 else m[..., 0] for m in masks]
-    teacher = DefaultFeatureTeacher()
+    teacher = teacher or DefaultFeatureTeacher()
     teacher(images[0])  # warm-up (random features, SLIC allocation)
     feats, times = [], []
     for im in images:
@@ -106,9 +62,9 @@ def evaluate_scene(root: Path, cache: Path, object_id: int | None = None) -> tup
     t_big = time.perf_counter() - t0
     inside = sims[view][gts[view]]
     res = {"object_id": obj, "patch": {"view": view, "x0": x0, "y0": y0, "x1": x1, "y1": y1},
-           "threshold": DEFAULT_THRESHOLD, "iou": mask_iou(sims, gts, DEFAULT_THRESHOLD),
+           "teacher": teacher.name, "threshold": threshold, "iou": mask_iou(sims, gts, threshold),
            "best_iou": ious[best_t], "best_threshold": best_t,
-           "iou_compressed": mask_iou(sims_c, gts, DEFAULT_THRESHOLD),
+           "iou_compressed": mask_iou(sims_c, gts, threshold),
            "iou_by_threshold": {f"{t:.2f}": v for t, v in ious.items()},
            "sim_inside_mean": float(inside.mean()), "sim_outside_p95": float(np.percentile(
                np.concatenate([s[~g] for s, g in zip(sims, gts)]), 95)),
@@ -116,7 +72,8 @@ def evaluate_scene(root: Path, cache: Path, object_id: int | None = None) -> tup
            "seconds_504x378_with_compression": t_big, "dims": store.dims,
            "mb_per_image": store.mb_per_image(), "mb_per_image_504x378": big_store.mb_per_image(),
            "pca_explained": store.codec.explained, "views": len(images)}
-    return res, picture_row(images, sims, gts, DEFAULT_THRESHOLD, view, (y0, y1, x0, x1))
+    return res, {"images": images, "sims": sims, "gts": gts, "view": view, "box": (y0, y1, x0, x1),
+                 "threshold": threshold}
 
 
 def teacher_input(image: np.ndarray) -> np.ndarray:
@@ -156,24 +113,35 @@ def _cos(f: np.ndarray, q: np.ndarray) -> np.ndarray:
     return (f @ qn) / np.maximum(np.linalg.norm(f, axis=-1), 1e-8)
 
 
-def picture_row(images, sims, gts, threshold, view, box, n: int = 4) -> np.ndarray:
-    """Image | similarity | mask (green = hit, red = miss, blue = false) for a few views, RGB uint8."""
-    picks = [view] + [i for i in np.linspace(0, len(images) - 1, n).round().astype(int) if i != view][:n - 1]
-    tiles = []
-    for i in picks:
-        img = teacher_input(images[i]).copy()
-        if i == view:
-            y0, y1, x0, x1 = box
-            cv2.rectangle(img, (x0, y0), (x1 - 1, y1 - 1), (255, 255, 0), 1)
-        sim = cv2.applyColorMap((np.clip(sims[i], 0, 1) * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
-        m = sims[i] > threshold
-        err = np.zeros_like(img)
-        err[m & gts[i]] = (40, 200, 40)
-        err[~m & gts[i]] = (220, 40, 40)
-        err[m & ~gts[i]] = (40, 80, 230)
-        tiles += [img, sim, err]
-    return np.concatenate(tiles, 1)
+def patch_box(rect: tuple[float, float, float, float], height: int, width: int) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1) pixels of a rectangle given as image fractions (x0, y0, x1, y1), at least 1x1."""
+    x0, y0, x1, y1 = (float(v) for v in rect)
+    px0, py0 = int(np.floor(x0 * width)), int(np.floor(y0 * height))
+    return py0, max(py0 + 1, int(np.ceil(y1 * height))), px0, max(px0 + 1, int(np.ceil(x1 * width)))
 
 
-def _pad(row: np.ndarray, width: int) -> np.ndarray:
-    return np.pad(row, ((0, 0), (0, width - row.shape[1]), (0, 0)))
+def evaluate_photo(image: np.ndarray, box: tuple[int, int, int, int], teacher, threshold: float,
+                   refine=None) -> tuple[dict, dict]:
+    """The mask a patch `box` (y0, y1, x0, x1) gives on one photograph through `teacher`: its area fraction at
+    `threshold` and at each of THRESHOLDS, the similarity inside the patch, the teacher's time. `refine`
+    (masks -> masks, e.g. SAM) adds the refined mask's area. Returns (figures, maps: image, sim, mask[, refined])."""
+    rgb = teacher_input(image)
+    teacher(rgb[:32, :32])  # warm-up (lazy allocations)
+    t0 = time.perf_counter()
+    feat = teacher(rgb)
+    seconds = time.perf_counter() - t0
+    y0, y1, x0, x1 = box
+    q = feat[y0:y1, x0:x1].reshape(-1, feat.shape[-1]).mean(0)
+    sim = _cos(feat, q)
+    mask = sim > threshold
+    res = {"teacher": teacher.name, "dims": int(feat.shape[-1]), "image_size": list(rgb.shape[:2]),
+           "patch": {"x0": x0, "y0": y0, "x1": x1, "y1": y1}, "threshold": float(threshold),
+           "area_fraction": float(mask.mean()),
+           "area_by_threshold": {f"{t:.2f}": float((sim > t).mean()) for t in THRESHOLDS},
+           "sim_in_patch_mean": float(sim[y0:y1, x0:x1].mean()), "sim_median": float(np.median(sim)),
+           "seconds": seconds}
+    maps = {"image": rgb, "sim": sim, "mask": mask, "box": box}
+    if refine is not None:
+        maps["refined"] = np.asarray(refine([mask])[0], bool)
+        res["area_fraction_refined"] = float(maps["refined"].mean())
+    return res, maps

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from core.device import get_device
-from core.errors import ModelNotFoundError
+from core.errors import ModelNotFoundError, UserError
 from core.models.paths import how_to_set
 
 # OpenAI CLIP's normalisation; used when the folder has no preprocessor_config.json.
@@ -36,6 +36,9 @@ class Clip:
     @torch.no_grad()
     def encode_text(self, prompts: list[str]) -> Tensor:
         """Projected text embeddings (B, D), fp32, not normalised."""
+        if self.tokenizer is None:
+            raise UserError("this CLIP folder has no tokenizer files, so it cannot encode text",
+                            hint="copy the tokenizer files (vocab.json, merges.txt) of the model into the folder")
         tok = self.tokenizer(prompts, padding=True, truncation=True, return_tensors="pt").to(self.device)
         return _pooled(self.model.get_text_features(input_ids=tok.input_ids,
                                                     attention_mask=tok.attention_mask)).float()
@@ -65,8 +68,19 @@ def _preprocessing(path: Path, model) -> tuple[int, tuple, tuple]:
     return size, mean, std
 
 
-def load_clip(path: str | os.PathLike, device: torch.device | str | None = None) -> Clip:
-    """Load a CLIP model folder (config.json, weights, tokenizer files) with `local_files_only=True`."""
+def _tokenizer(cls, path: Path, required: bool):
+    """The folder's tokenizer; None when it has none and none is `required`."""
+    try:
+        return cls.from_pretrained(path, local_files_only=True)
+    except (OSError, ValueError, TypeError):
+        if required:
+            raise
+        return None
+
+
+def load_clip(path: str | os.PathLike, device: torch.device | str | None = None, need_tokenizer: bool = True) -> Clip:
+    """Load a CLIP model folder (config.json, weights, tokenizer files) with `local_files_only=True`.
+    `need_tokenizer=False` (image features only) loads a folder without tokenizer files (tokenizer None)."""
     from transformers import CLIPModel, CLIPTokenizer
 
     path = Path(path).expanduser()
@@ -78,7 +92,7 @@ def load_clip(path: str | os.PathLike, device: torch.device | str | None = None)
     dev = get_device(str(device)) if device is not None else get_device()
     try:
         model = CLIPModel.from_pretrained(path, local_files_only=True, torch_dtype=torch.float32)
-        tokenizer = CLIPTokenizer.from_pretrained(path, local_files_only=True)
+        tokenizer = _tokenizer(CLIPTokenizer, path, need_tokenizer)
     except (OSError, ValueError) as exc:
         raise ModelNotFoundError(f"could not load the CLIP model: {exc}", path=path,
                                  hint="the folder needs config.json, the weights and the tokenizer files "

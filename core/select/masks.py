@@ -122,9 +122,11 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
 
 def masks_for_views(field, grid, cameras, selection, threshold: float | None = None, workspace=None,
                     cleanup: bool | None = None, cache: ViewCache | None = None, names: list[str] | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
+                    progress: Callable[[int, int], None] | None = None,
+                    refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
-    (WS/masks) when given. `cleanup` (default: the selection's) applies the 3D clean-up of cleanup3d."""
+    (WS/masks) when given. `cleanup` (default: the selection's) applies the 3D clean-up of cleanup3d;
+    `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps the final masks."""
     from core.select.cleanup3d import cleanup_masks
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
@@ -143,6 +145,8 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
         seeds = [(p.view, p) for p in selection.patches if p.positive]
         masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cameras, seeds)
     out = [m.cpu().numpy().astype(bool) for m in masks]
+    if refine is not None:
+        out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
         write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup)})
     return out

@@ -15,12 +15,15 @@ from core.errors import ModelNotFoundError
 
 
 def resolve_model(path: str | Path | None, env: str, flag: str, what: str) -> Path:
-    """The model path from the argument or `env`; a missing file is a ModelNotFoundError naming both."""
+    """The ONNX file from the argument or `env` (a file, a folder holding one, or a cached model id holding
+    one; core.models.paths.locate_model); a missing one is a ModelNotFoundError naming both."""
+    from core.models.paths import locate_model
+
     raw = path if path not in (None, "") else os.environ.get(env)
     hint = f"pass {flag} PATH.onnx or set {env} to a local .onnx file (nothing is downloaded)"
     if raw in (None, ""):
         raise ModelNotFoundError(f"no {what} model was given", hint=hint)
-    p = Path(raw).expanduser()
+    p = locate_model(what, raw, f"the {flag} flag" if path not in (None, "") else f"${env}")
     if p.is_dir():
         found = sorted(p.glob("*.onnx"))
         if len(found) != 1:

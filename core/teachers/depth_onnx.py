@@ -51,9 +51,10 @@ class OnnxDepthTeacher:
         return resize_map(out, rgb.shape[0], rgb.shape[1])
 
 
-def aligned_monocular_depth(teacher: OnnxDepthTeacher, images: Sequence[np.ndarray], sparse: DepthPriors,
+def aligned_monocular_depth(teacher, images: Sequence[np.ndarray], sparse: DepthPriors,
                             min_points: int = 8) -> DepthPriors:
-    """Dense z-depth per image: the teacher's map aligned in scale and shift to that image's sparse
+    """Dense z-depth per image: the teacher's map (any depth teacher with `inverse` and `name`: ONNX or
+    transformers) aligned in scale and shift to that image's sparse
     depth (in inverse depth when the teacher predicts inverse depth). Images with fewer than
     `min_points` sparse points keep their sparse prior instead.
     """

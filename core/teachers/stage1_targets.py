@@ -3,8 +3,10 @@ training images, computed once and cached in the workspace. The editor and `repa
 these, so a workspace from either can be selected in.
 
 Which teachers: an explicit model (a `train` flag), else the workspace's saved choice, else the
-environment ($REPAINT_NERF_FEATURE_MODEL / $REPAINT_NERF_DEPTH_MODEL, or features.onnx / depth.onnx under
-$REPAINT_NERF_MODELS), else the weight-free default feature teacher and sparse depth only. The choice is
+environment ($REPAINT_NERF_FEATURE_MODEL / $REPAINT_NERF_DEPTH_MODEL, or features.onnx / depth.onnx or a
+feature / depth folder under $REPAINT_NERF_MODELS), else the weight-free default feature teacher and sparse
+depth only. A model is an ONNX file or a transformers folder or cached model id (DINOv2, CLIP, SigLIP;
+DPT, Depth Anything), told apart by config.json's model_type (core.models.paths.model_type). The choice is
 saved in settings.json, so re-opening a workspace distils (and reads the cache of) the same teachers.
 """
 from __future__ import annotations
@@ -18,7 +20,7 @@ from core.errors import ModelNotFoundError, UserError, WorkspaceError
 DEPTH_CACHE = "depth_priors.safetensors"
 FEATURE_DIMS = 12
 FEATURE_SETTING = "feature_model"  # null: the default teacher; else {"path", "input_size", "norm"}
-DEPTH_SETTING = "depth_model"      # null: sparse priors only; else the ONNX file's path
+DEPTH_SETTING = "depth_model"      # null: sparse priors only; else the model's path or cached model id
 DEFAULT_FEATURE = "default"        # `--feature-model default`: back to the built-in teacher
 NO_DEPTH_MODEL = "none"            # `--depth-model none`: sparse priors only
 FEATURE_NORMS = ("imagenet", "clip")
@@ -27,8 +29,8 @@ ROOT_ENV = "REPAINT_NERF_MODELS"
 
 @dataclass(frozen=True)
 class FeatureModel:
-    """A workspace's feature teacher: an ONNX file with its input size (H, W) and normalisation, or the
-    default teacher (path None)."""
+    """A workspace's feature teacher: an ONNX file or a transformers folder / cached model id, with its input
+    size (H, W) and (ONNX only) input normalisation, or the default teacher (path None)."""
 
     path: str | None = None
     input_size: tuple[int, int] | None = None
@@ -83,14 +85,35 @@ def _trained(ws) -> bool:
     return any(Path(ws.checkpoints_dir).glob("*.safetensors")) or ws.current_version is not None
 
 
-def _env_model(env: str, root_file: str) -> str | None:
-    """A model path from `env`, else `root_file` under $REPAINT_NERF_MODELS when it exists."""
+def _env_model(env: str, *root_names: str) -> str | None:
+    """A model path from `env`, else the first of `root_names` under $REPAINT_NERF_MODELS that exists."""
     if os.environ.get(env):
         return os.environ[env]
     root = os.environ.get(ROOT_ENV)
-    if root and (Path(root).expanduser() / root_file).is_file():
-        return str(Path(root).expanduser() / root_file)
+    for name in root_names if root else ():
+        if (Path(root).expanduser() / name).exists():
+            return str(Path(root).expanduser() / name)
     return None
+
+
+def _saved_value(value: str, teacher) -> str:
+    """What settings.json keeps of a model value: the model's absolute path for a local path (a relative
+    path or an ONNX folder reads the same later), the id itself for a cached model id."""
+    return str(teacher.path.resolve()) if Path(value).expanduser().exists() else str(value)
+
+
+_SOURCES = {"flag": "the {flag} flag", "env": "${env} (or $" + ROOT_ENV + ")",
+            "setting": "the workspace setting '{setting}'"}
+
+
+def _locate(kind: str, value: str, source: str) -> tuple[Path, str]:
+    """(local file or folder, 'onnx' or config.json's model_type) of a model value (a path or cached id)."""
+    from core.models.paths import locate_model, model_kind, model_type
+
+    k = model_kind(kind)
+    where = _SOURCES.get(source, _SOURCES["flag"]).format(flag=k.flag, env=k.env, setting=k.settings_key)
+    path = locate_model(kind, value, where)
+    return path, model_type(path)
 
 
 def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, int] | None = None,
@@ -105,14 +128,15 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
         choice = FeatureModel() if model == DEFAULT_FEATURE else FeatureModel(str(model)), "flag"
     elif FEATURE_SETTING in settings:
         choice = FeatureModel.from_setting(settings[FEATURE_SETTING], ws.root / "settings.json"), "setting"
-    elif _trained(ws) or not _env_model(ENV_FEATURE_MODEL, "features.onnx"):
+    elif _trained(ws) or not _env_model(ENV_FEATURE_MODEL, "features.onnx", "feature"):
         choice = FeatureModel(), "default"
     else:
-        choice = FeatureModel(_env_model(ENV_FEATURE_MODEL, "features.onnx")), "env"
+        choice = FeatureModel(_env_model(ENV_FEATURE_MODEL, "features.onnx", "feature")), "env"
     fm, source = choice
     if (input_size is not None or norm is not None) and fm.path is None:
-        raise UserError("--feature-size and --feature-norm describe an ONNX feature model, and none is chosen",
-                        hint="pass --feature-model PATH.onnx too (or set REPAINT_NERF_FEATURE_MODEL)")
+        raise UserError("--feature-size and --feature-norm describe a feature model, and none is chosen",
+                        hint="pass --feature-model PATH.onnx / FOLDER / MODEL_ID too "
+                             "(or set REPAINT_NERF_FEATURE_MODEL)")
     if fm.path is not None:
         fm = FeatureModel(fm.path, input_size if input_size is not None else fm.input_size,
                           check_norm(norm if norm is not None else fm.norm))
@@ -120,22 +144,28 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
 
 
 def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
-    """The teacher of a choice; a missing or broken model is a ModelNotFoundError naming what to fix."""
+    """The teacher of a choice (ONNX, or a transformers backbone: DINOv2, CLIP as MaskCLIP, SigLIP); a missing
+    or broken model is a ModelNotFoundError naming what to fix."""
     from core.teachers.feature_default import DefaultFeatureTeacher
+    from core.teachers.feature_hf import HFFeatureTeacher
     from core.teachers.feature_onnx import OnnxFeatureTeacher
 
     if fm.path is None:
         return DefaultFeatureTeacher()
-    mean, std = norm_constants(fm.norm)
     try:
-        return OnnxFeatureTeacher(fm.path, input_size=fm.input_size, mean=mean, std=std)
+        path, kind = _locate("feature", fm.path, source)
+        if kind != "onnx":  # a transformers model brings its own input normalisation
+            return HFFeatureTeacher(path, input_size=fm.input_size, label=fm.path)
+        mean, std = norm_constants(fm.norm)
+        return OnnxFeatureTeacher(path, input_size=fm.input_size, mean=mean, std=std)
     except ModelNotFoundError as exc:
         if source != "setting":
             raise
         raise ModelNotFoundError(f"the workspace's feature model (settings.json '{FEATURE_SETTING}') cannot be "
                                  f"used: {str(exc).splitlines()[0]}",
-                                 hint="move the file back, or choose again: repaint-nerf train SCENE --workspace "
-                                      "WS --feature-model PATH.onnx (or --feature-model default)") from exc
+                                 hint="move the model back, or choose again: repaint-nerf train SCENE --workspace "
+                                      "WS --feature-model PATH.onnx|FOLDER|MODEL_ID (or --feature-model "
+                                      "default)") from exc
 
 
 def workspace_feature_teacher(ws):
@@ -152,8 +182,8 @@ def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = Non
 
     fm, source = choose_feature_model(ws, model, input_size, norm)
     teacher = make_feature_teacher(fm, source)
-    if fm.path is not None:  # saved as the absolute file, so a relative path or a folder reads the same later
-        fm = FeatureModel(str(teacher.path.resolve()), fm.input_size, fm.norm)
+    if fm.path is not None:
+        fm = FeatureModel(_saved_value(fm.path, teacher), fm.input_size, fm.norm)
     old = ws.settings.get(FEATURE_SETTING, "unset")
     if notes is not None and old != "unset" and old != fm.to_setting():
         notes.append(f"feature teacher changed to {fm.label}: the feature field now learns it (select again)")
@@ -176,8 +206,8 @@ def workspace_codec(scene, ws, teacher):
 
 
 def choose_depth_model(ws, model: str | None = None) -> tuple[str | None, str]:
-    """(ONNX path or None for sparse only, source): `model` ('none' or a path) > the saved choice > the
-    environment. A workspace trained before choices were saved keeps its sparse priors."""
+    """(model path / cached id, or None for sparse only; source): `model` ('none' or a model) > the saved
+    choice > the environment. A workspace trained before choices were saved keeps its sparse priors."""
     from core.teachers.depth_onnx import ENV_DEPTH_MODEL
 
     if model:
@@ -185,23 +215,26 @@ def choose_depth_model(ws, model: str | None = None) -> tuple[str | None, str]:
     settings = ws.settings
     if DEPTH_SETTING in settings:
         return (str(settings[DEPTH_SETTING]) if settings[DEPTH_SETTING] else None), "setting"
-    env = _env_model(ENV_DEPTH_MODEL, "depth.onnx")
+    env = _env_model(ENV_DEPTH_MODEL, "depth.onnx", "depth")
     return (env, "env") if env and not _trained(ws) else (None, "none")
 
 
 def make_depth_teacher(path: str, source: str = "flag"):
-    """The monocular depth teacher of a path; a missing or broken model names what to fix."""
+    """The monocular depth teacher of a model (ONNX, or a transformers DPT / Depth Anything); a missing or
+    broken model names what to fix."""
+    from core.teachers.depth_hf import HFDepthTeacher
     from core.teachers.depth_onnx import OnnxDepthTeacher
 
     try:
-        return OnnxDepthTeacher(path)
+        located, kind = _locate("depth", path, source)
+        return OnnxDepthTeacher(located) if kind == "onnx" else HFDepthTeacher(located)
     except ModelNotFoundError as exc:
         if source != "setting":
             raise
         raise ModelNotFoundError(f"the workspace's depth model (settings.json '{DEPTH_SETTING}') cannot be used: "
                                  f"{str(exc).splitlines()[0]}",
-                                 hint="move the file back, or choose again: repaint-nerf train SCENE --workspace "
-                                      "WS --depth-model PATH.onnx (or --depth-model none)") from exc
+                                 hint="move the model back, or choose again: repaint-nerf train SCENE --workspace "
+                                      "WS --depth-model PATH.onnx|FOLDER|MODEL_ID (or --depth-model none)") from exc
 
 
 def depth_priors(scene, ws, notes: list | None = None, model: str | None = None):
@@ -213,7 +246,7 @@ def depth_priors(scene, ws, notes: list | None = None, model: str | None = None)
     sparse = sparse_depth_priors(scene, ws, notes)
     if teacher is not None and sparse is None and notes is not None:
         notes.append(f"depth model {Path(path).name} not used: there are no sparse depth points to align it to")
-    ws.update_settings(**{DEPTH_SETTING: None if teacher is None else str(teacher.path.resolve())})
+    ws.update_settings(**{DEPTH_SETTING: None if teacher is None else _saved_value(path, teacher)})
     if teacher is None or sparse is None:
         return sparse
     return _cached_priors(scene, ws.teachers_dir / _aligned_cache_name(teacher),

@@ -1,5 +1,6 @@
 """Text queries through a CLIP-aligned feature teacher: an ONNX teacher whose features live in a CLIP
-model's text space (LSeg's live in CLIP ViT-B/32's) paired with that CLIP model's text encoder, so a
+model's text space (LSeg's live in CLIP ViT-B/32's) paired with that CLIP model's text encoder, or a CLIP
+model alone as the teacher (MaskCLIP features, core/teachers/feature_hf.py) with its own text encoder, so a
 prompt's embedding can be compared with the features the field learned (paper: a text query instead of
 a patch, through the teacher's text encoder).
 """
@@ -11,9 +12,9 @@ import numpy as np
 
 from core.errors import UserError
 
-HINT = ("text selection needs a CLIP-aligned feature teacher (an LSeg ONNX export, trained with "
-        "--feature-model) plus the CLIP model of its feature space (--clip-path or REPAINT_NERF_CLIP_PATH); "
-        "otherwise select with a patch")
+HINT = ("text selection needs a CLIP-aligned feature teacher: a CLIP model folder or cached id (trained with "
+        "--feature-model; MaskCLIP features), or an LSeg ONNX export (--feature-model) plus the CLIP model of its "
+        "feature space (--clip-path or REPAINT_NERF_CLIP_PATH); otherwise select with a patch")
 
 
 class TextAlignedTeacher:
@@ -40,9 +41,12 @@ class TextAlignedTeacher:
 
 
 def teacher_feature_dim(teacher) -> int:
-    """D of an ONNX teacher's (1, D, h, w) output: from the model's declared shape, else one tiny run."""
+    """D of a CLIP-aligned teacher: a MaskCLIP teacher's projection dim, else an ONNX teacher's (1, D, h, w)
+    output from the model's declared shape (else one tiny run)."""
     from core.teachers.feature_onnx import OnnxFeatureTeacher
 
+    if getattr(teacher, "clip", None) is not None:
+        return int(teacher.dim)
     if not isinstance(teacher, OnnxFeatureTeacher):
         raise UserError(f"the feature teacher '{getattr(teacher, 'name', type(teacher).__name__)}' is not "
                         "CLIP-aligned, so it cannot select by text", hint=HINT)
@@ -59,10 +63,14 @@ def clip_text_dim(clip) -> int:
 
 def text_teacher(teacher, clip_path: str | Path | None = None, settings: dict | None = None) -> TextAlignedTeacher:
     """`teacher` paired with the CLIP model at `clip_path` (else $REPAINT_NERF_CLIP_PATH, the models root or
-    the workspace's 'clip_path' setting); the teacher is checked before CLIP is loaded."""
+    the workspace's 'clip_path' setting); the teacher is checked before CLIP is loaded. A MaskCLIP teacher
+    is paired with its own CLIP model (no other is looked for)."""
     from core.models.clip import load_clip
     from core.models.paths import resolve_model_path
 
+    own = getattr(teacher, "clip", None)
+    if own is not None:
+        return TextAlignedTeacher(teacher, own)
     teacher_feature_dim(teacher)  # a default teacher fails here, before a CLIP model is looked for
     return TextAlignedTeacher(teacher, load_clip(resolve_model_path("clip", clip_path, settings)))
 
