@@ -15,8 +15,9 @@ from repaint_scene import make_field, make_grid, make_scene
 from tiny_diffusion import cached
 
 # Cosine between the bf16 and fp32 UNets' image gradients on the tiny pipeline at guidance scale 100:
-# measured 0.97-0.999 over seeds 0-7 (classifier-free guidance multiplies the UNet's rounding by 100).
-BF16_COSINE_BAR = 0.95
+# measured 0.993-0.998 over seeds 0-7, norm ratio 0.985-1.033 (classifier-free guidance multiplies the
+# UNet's rounding by 100).
+BF16_COSINE_BAR = 0.98
 
 
 def make_tiny_autoencoder(folder, latent_channels: int = 4, seed: int = 0):
@@ -62,7 +63,7 @@ def test_bf16_unet_gradient_close_to_fp32(sd, seed):
     got = _image_grad(sd, seed)
     cos = float(torch.nn.functional.cosine_similarity(ref, got, dim=0))
     assert torch.isfinite(got).all() and cos > BF16_COSINE_BAR, cos
-    assert 0.5 < float(got.norm() / ref.norm()) < 2.0
+    assert 0.9 < float(got.norm() / ref.norm()) < 1.1
 
 
 def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monkeypatch):

@@ -4,6 +4,7 @@ from __future__ import annotations
 from imgui_bundle import imgui
 
 from app.panels.common import remember_item, unavailable
+from core.repaint.estimate import format_duration
 
 BACKENDS = ("offline", "recolor", "remove", "analytic", "sd")
 BACKEND_HELP = {"offline": "recolor or remove, read from the prompt (no model)", "recolor": "recolour to a colour named "
@@ -24,6 +25,25 @@ def _model_status(app, kind: str, flag: str) -> str | None:
             cache[key] = None
         except Exception as exc:  # ModelNotFoundError, or the resolver not built
             cache[key] = str(exc)
+    return cache[key]
+
+
+def _estimate(app) -> str:
+    """The expected repaint time for the chosen guidance, steps and scene on the engine's device (cached)."""
+    s = app.state
+    cams = s.scene_info.get("cameras")
+    key = (s.backend, int(s.steps), s.scene_info.get("device"), cams is not None)
+    cache = app.cache.setdefault("repaint_estimate", {})
+    if key not in cache:
+        try:
+            from core.device import get_device
+            from core.repaint.estimate import estimate_before_start
+
+            w, h = (int(cams.width[0]), int(cams.height[0])) if cams is not None else (128, 128)
+            cache[key] = estimate_before_start(s.backend, max(1, int(s.steps)), w, h,
+                                               s.scene_info.get("device") or get_device()).describe()
+        except Exception as exc:  # a bad field value must not break the panel
+            cache[key] = f"estimated time: unknown ({exc})"
     return cache[key]
 
 
@@ -59,6 +79,7 @@ def draw(app) -> None:
     if unavailable(app, "repaint"):
         return
     if not s.repaint_running:
+        imgui.text_wrapped(_estimate(app))
         if imgui.button("Repaint##start"):  # the header is also "Repaint": a distinct id
             app.start_repaint()
         remember_item(app, "repaint")
@@ -66,6 +87,7 @@ def draw(app) -> None:
         st = s.last_status
         done = float(st.get("step", 0)) / max(1, st.get("steps", s.steps)) if st.get("phase") == "repaint" else 0.0
         imgui.progress_bar(min(done, 1.0), imgui.ImVec2(-1, 0))
+        imgui.text(f"step {st.get('step', 0)}/{st.get('steps', s.steps)}, {format_duration(st.get('eta_s'))} left")
         if imgui.button("Resume" if not s.training else "Pause"):
             app.set_training(not s.training)
         imgui.same_line()

@@ -31,6 +31,7 @@ from core.device import get_device, is_cuda, synchronize
 from core.errors import UserError
 from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.repaint import offline
+from core.repaint.estimate import Estimate, Progress, estimate_repaint
 from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from core.train.checkpoint import Checkpoint, split_state
 from core.train.health import SpikeDetector
@@ -71,6 +72,15 @@ class RepaintConfig:
     # toward a flat tint, as a diffusion model also repaints surroundings it was not asked to change; the
     # unmask loss (paper Eq. unmask) is what holds them. 0 = the true edited views.
     analytic_drift: float = 0.0
+    # Stable Diffusion step cost (bench sdcost figures in core.repaint.estimate):
+    # the gradient-free UNet's precision: 'auto' = fp16 on CUDA, bf16 on a CPU with native bf16, else fp32.
+    sd_unet_precision: str = "auto"
+    # a TAESD-style tiny autoencoder (local folder or cached id, e.g. madebyollin/taesd) replacing the VAE
+    # encoder and its backward; None keeps the VAE (exact latents, the costliest part of a CPU step).
+    sd_tiny_autoencoder: str | None = None
+    # the side SD sees the render at; None = the model's own (512 for SD 1.5 / 2-base). 256 costs ~1/4 but
+    # SD draws less well below its training resolution.
+    sds_resolution: int | None = None
 
 
 DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the unmasked target
@@ -165,6 +175,7 @@ class RepaintTrainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
+        self.progress = Progress(self.cfg.steps)
         self.spikes = SpikeDetector()  # on the unmask loss: the guidance loss swings with t by design
         self.done = False
         self.cancelled = False
@@ -260,7 +271,10 @@ class RepaintTrainer:
 
             settings = self.workspace.settings if self.workspace is not None else None
             return build_guidance("sd", prompt=self.prompt, negative_prompt=negative_prompt, sd_path=sd_path,
-                                  settings=settings, device=self.device, seed=self.cfg.seed)
+                                  settings=settings, device=self.device, seed=self.cfg.seed,
+                                  unet_precision=self.cfg.sd_unet_precision,
+                                  tiny_autoencoder=self.cfg.sd_tiny_autoencoder,
+                                  sds_resolution=self.cfg.sds_resolution)
         raise UserError(f"unknown guidance {kind!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
 
     def _build_clip(self, clip_path):
@@ -358,8 +372,10 @@ class RepaintTrainer:
             dt = time.perf_counter() - t0
             self.train_seconds += dt
             info.update(spike=self.spikes.update(info.get("unmask", float("nan"))), spikes=self.spikes.spikes)
+            self.progress.update(dt)
             info.update(step=self.step_count, skipped=skipped, skipped_steps=self.skipped_steps, seconds=dt,
-                        phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]))
+                        phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]), steps=self.cfg.steps,
+                        eta_s=self.progress.seconds_left(self.step_count))
             self.history.append(info)
             if self.on_snapshot is not None and self.cfg.snapshot_every and \
                     self.step_count % self.cfg.snapshot_every == 0:
@@ -368,6 +384,27 @@ class RepaintTrainer:
                 self.finish()
                 info["done"] = True
             return info
+
+    def time_field_step(self) -> float:
+        """Seconds of one render + backward of view 0 at the edit resolution (no update: the field is unchanged)."""
+        synchronize(self.device)
+        t0 = time.perf_counter()
+        rgb = self.render_view(0)
+        rgb.float().sum().backward()
+        synchronize(self.device)
+        dt = time.perf_counter() - t0
+        self.optimizer.zero_grad(set_to_none=True)
+        return dt
+
+    def estimate(self, time_field: bool = True) -> Estimate:
+        """Expected duration of this edit (core.repaint.estimate), with a timed field step when `time_field`."""
+        est = estimate_repaint(self.kind, self.cfg.steps, self.size, self.device,
+                               field_step_seconds=self.time_field_step() if time_field else None,
+                               unet_precision=self.cfg.sd_unet_precision,
+                               tiny_autoencoder=bool(self.cfg.sd_tiny_autoencoder),
+                               sds_resolution=self.cfg.sds_resolution)
+        self.progress.prior = est.step_seconds
+        return est
 
     @torch.no_grad()
     def snapshot(self, view: int | None = None) -> dict:
