@@ -143,3 +143,24 @@ def test_profile_records_each_stage(sd):
     g.loss(torch.rand(1, 3, 16, 16, requires_grad=True), None, 0, 0)
     assert set(g.stage_seconds) == {"resize", "encode_forward", "unet_forward", "loss"}
     assert all(v >= 0 for v in g.stage_seconds.values())
+
+
+def test_annealed_timesteps_fall_linearly_and_uniform_stays():
+    from core.repaint.guidance import TimestepSampler
+
+    ab = torch.linspace(0.999, 0.01, 1000)
+    uni = TimestepSampler(ab, (0.02, 0.98), torch.Generator().manual_seed(0))
+    ann = TimestepSampler(ab, (0.02, 0.98), torch.Generator().manual_seed(0), "annealed")
+    assert uni.upper(0.0) == uni.upper(1.0) == 980
+    assert (ann.upper(0.0), ann.upper(0.5), ann.upper(1.0)) == (980, 740, 500)
+    late = [ann.sample(0.9) for _ in range(200)]
+    assert min(late) >= 20 and max(late) <= ann.upper(0.9) == 548
+    assert max(late) > 450  # still spans the range below the bound
+    with pytest.raises(ValueError, match="schedule"):
+        TimestepSampler(ab, (0.02, 0.98), None, "cosine")
+
+
+def test_sds_passes_progress_to_the_annealed_schedule(sd):
+    g = SDSGuidance(sd, "a rose", seed=0, t_schedule="annealed", total_steps=10)
+    ts = [g.loss(torch.rand(1, 3, 16, 16), None, 0, 9)["t"] for _ in range(20)]
+    assert max(ts) <= g.sampler.upper(0.9) < 980

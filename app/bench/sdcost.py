@@ -23,14 +23,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None)
 
 
-def table(result: dict) -> str:
-    """The per-option figures as a fixed-width text table."""
-    head = f"{'option':<22}{'s/step':>8}{'x base':>8}" + "".join(f"{s[:10]:>11}" for s in STAGES) + f"{'peak MB':>9}"
+def table(result: dict, cpu: bool = False) -> str:
+    """The per-option figures (wall seconds, or CPU seconds when `cpu`) as a fixed-width text table."""
+    sfx = "_cpu" if cpu else ""
+    head = (f"{'option':<22}{'CPU s' if cpu else 's/step':>8}{'x base':>8}" + "".join(f"{s[:10]:>11}" for s in STAGES)
+            + f"{'peak MB':>9}")
     lines = [head]
-    speed = result.get("speedup_vs_baseline", {})
+    speed = result.get("cpu_speedup_vs_baseline" if cpu else "speedup_vs_baseline", {})
     for name, r in result["options"].items():
-        st = r["stages_seconds"]
-        lines.append(f"{name:<22}{r['step_seconds']:>8.2f}{speed.get(name, float('nan')):>8.2f}"
+        st = r[f"stages{sfx}_seconds"]
+        lines.append(f"{name:<22}{r[f'step{sfx}_seconds']:>8.2f}{speed.get(name, float('nan')):>8.2f}"
                      + "".join(f"{st.get(s, float('nan')):>11.2f}" for s in STAGES) + f"{r['peak_rss_mb']:>9.0f}")
     return "\n".join(lines)
 
@@ -39,12 +41,19 @@ def run(args: argparse.Namespace) -> int:
     from core.bench.sdcost import measure
 
     names = [n.strip() for n in args.options.split(",") if n.strip()] if args.options else None
-    result = measure(args.device, steps=args.steps, size=args.size, family=args.family, options=names,
-                     progress=lambda m: print(m, flush=True))
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2))
+
+    def write(result: dict) -> None:
+        out.write_text(json.dumps(result, indent=2))
+
+    result = measure(args.device, steps=args.steps, size=args.size, family=args.family, options=names,
+                     progress=lambda m: print(m, flush=True), on_option=write)
+    write(result)
+    print("wall seconds (contended on a shared machine):")
     print(table(result))
+    print("CPU seconds of this process (steadier under contention; / threads ~ an idle machine's wall time):")
+    print(table(result, cpu=True))
     if "bf16_grad_cosine" in result:
         print("bf16 vs fp32 guidance-gradient cosine by t:", result["bf16_grad_cosine"])
     print(f"wrote {out}")

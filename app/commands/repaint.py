@@ -44,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a TAESD tiny autoencoder (local folder, or a model id in the Hugging Face cache such as "
                         "madebyollin/taesd) encoding the render instead of SD's VAE: a much cheaper step on a CPU, "
                         "approximate latents")
+    p.add_argument("--t-schedule", default="uniform", choices=("uniform", "annealed"),
+                   help="Stable Diffusion timestep draw: uniform over 2-98%% of T (official), or annealed: the "
+                        "upper bound falls to 50%% of T over the run (detail late, for shorter runs)")
     p.add_argument("--sds-resolution", type=int, default=None,
                    help="side in pixels Stable Diffusion sees the render at (default: the model's, 512); 256 makes "
                         "a step ~4x cheaper, with less detail")
@@ -122,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
                         lambda_clip=lambda_clip, resolution=args.resolution,
                         optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed,
                         sd_unet_precision=args.sd_precision, sd_tiny_autoencoder=args.tiny_autoencoder,
-                        sds_resolution=args.sds_resolution)
+                        sds_resolution=args.sds_resolution, t_schedule=args.t_schedule)
     if args.steps is not None:
         cfg.steps = args.steps
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,

@@ -6,7 +6,9 @@ weights, assembles them as the loader does (core.models.sd.assemble) and times S
 render of `size` pixels: resize to the SDS resolution, VAE encode forward, the classifier-free UNet pass,
 the loss, and the backward (through the encoder to the render). Every speed option (core.models.sd_speed,
 SDSGuidance's sds_resolution) runs in the same process, one after the other, so their ratios are fair on a
-shared machine; peak resident memory is sampled per option. The bf16 UNet's guidance gradient is compared
+shared machine; each step's and stage's CPU time is reported too (on a machine shared with other jobs the
+CPU time per step / threads is a steadier guess of an idle machine's wall time than the contended wall
+time); peak resident memory is sampled per option. The bf16 UNet's guidance gradient is compared
 with fp32's (cosine) on fixed latents, noise and timesteps. The driver is app/bench/sdcost.py.
 """
 from __future__ import annotations
@@ -164,36 +166,44 @@ def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, dev
     sd.tiny_vae = tiny if opt.tiny_autoencoder else None
     guidance.resolution = opt.sds_resolution
     gen = torch.Generator().manual_seed(0)
-    totals, stages = [], []
+    totals, cpus, stages, cpu_stages = [], [], [], []
     with PeakRSS() as mem:
         for i in range(steps + 1):
             rgb = torch.rand(1, 3, size, size, generator=gen).to(device).requires_grad_(True)
             synchronize(device)
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             out = guidance.loss(rgb)
-            t1 = time.perf_counter()
+            t1, c1 = time.perf_counter(), time.process_time()
             out["loss"].backward()
             synchronize(device)
-            t2 = time.perf_counter()
+            t2, c2 = time.perf_counter(), time.process_time()
             if not (rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())):
                 raise RuntimeError(f"non-finite gradient with option {opt}")
             if i:  # the first step warms up allocators and kernels
                 totals.append(t2 - t0)
+                cpus.append(c2 - c0)
                 stages.append({**guidance.stage_seconds, "rest": (t1 - t0) - sum(guidance.stage_seconds.values()),
                                "backward": t2 - t1})
+                cpu_stages.append({**guidance.stage_cpu_seconds,
+                                   "rest": (c1 - c0) - sum(guidance.stage_cpu_seconds.values()), "backward": c2 - c1})
     step_s = statistics.median(totals)
     names = stages[0].keys()
     return {"settings": asdict(opt), "step_seconds": step_s, "step_seconds_all": totals,
             "stages_seconds": {k: statistics.median(s[k] for s in stages) for k in names},
+            "step_cpu_seconds": statistics.median(cpus),
+            "stages_cpu_seconds": {k: statistics.median(s[k] for s in cpu_stages) for k in names},
+            "idle_step_seconds_guess": statistics.median(cpus) / max(1, torch.get_num_threads()),
             "peak_rss_mb": mem.peak, "paper_steps_hours": step_s * PAPER_STEPS / 3600.0}
 
 
 def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
-            options: list[str] | None = None, progress: Callable[[str], None] | None = None) -> dict:
+            options: list[str] | None = None, progress: Callable[[str], None] | None = None,
+            on_option: Callable[[dict], None] | None = None) -> dict:
     """Time an SDS step for each of `options` (names in OPTIONS; default all) in this one process.
 
-    Returns figures per option (median step and per-stage seconds, peak RSS), their speed-up over the
-    baseline, and the cosine between the bf16 and fp32 UNets' guidance gradients.
+    Returns figures per option (median step and per-stage wall and CPU seconds, peak RSS), their speed-up
+    over the baseline, and the cosine between the bf16 and fp32 UNets' guidance gradients. `on_option(result)`
+    gets the result so far after each option (a long run's figures survive an interruption).
     """
     from core.device import describe, get_device, is_cuda
     from core.errors import UserError
@@ -239,16 +249,26 @@ def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
             ref_grads = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
         say(f"sdcost: {name} ...")
         result["options"][name] = r = _time_option(sd, guidance, tiny, opt, size, steps, device)
-        say(f"sdcost: {name}: {r['step_seconds']:.2f} s/step, peak {r['peak_rss_mb']:.0f} MB, "
-            + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_seconds"].items()))
+        say(f"sdcost: {name}: {r['step_seconds']:.2f} s/step ({r['step_cpu_seconds']:.1f} CPU s), peak "
+            f"{r['peak_rss_mb']:.0f} MB, " + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_seconds"].items()))
+        _speedups(result)
+        if on_option is not None:
+            on_option(result)
     if ref_grads is not None:
         sd.set_unet_dtype(torch.bfloat16)
         got = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
         result["bf16_grad_cosine"] = {str(t): _cosine(a, b) for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
         result["bf16_grad_rel_error"] = {str(t): float((a - b).norm() / a.norm().clamp_min(1e-12))
                                          for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
+    _speedups(result)
+    return result
+
+
+def _speedups(result: dict) -> None:
+    """Baseline time / option time, by wall time and by CPU time (the steadier one on a shared machine)."""
     base = result["options"].get("baseline")
     if base is not None:
         result["speedup_vs_baseline"] = {n: base["step_seconds"] / r["step_seconds"]
                                          for n, r in result["options"].items()}
-    return result
+        result["cpu_speedup_vs_baseline"] = {n: base["step_cpu_seconds"] / r["step_cpu_seconds"]
+                                             for n, r in result["options"].items()}

@@ -3,7 +3,7 @@
 Classifier-free guidance (scale 100), t ~ U[20, 980] of 1000, w(t) = 1 - alpha_bar_t, the render
 resized to the model's resolution (or a lower `sds_resolution`, a user's choice: 256 px costs ~1/4)
 and VAE-encoded with gradient; the UNet runs without gradient. With `profile` set, `stage_seconds` holds
-the last step's time per stage (bench sdcost).
+the last step's wall time per stage and `stage_cpu_seconds` this process's CPU time (bench sdcost).
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ class SDSGuidance:
     def __init__(self, sd: StableDiffusion, prompt: str, negative_prompt: str = "",
                  guidance_scale: float = 100.0, t_range: tuple[float, float] = (0.02, 0.98),
                  clip_value: float | None = None, clip_norm: float | None = None, seed: int | None = None,
-                 sds_resolution: int | None = None, profile: bool = False):
+                 sds_resolution: int | None = None, t_schedule: str = "uniform", total_steps: int | None = None,
+                 profile: bool = False):
         self.sd = sd
         self.resolution = sd.resolution if sds_resolution is None else int(sds_resolution)
         step = sd.vae_scale_factor * 2 ** (len(sd.unet.config.block_out_channels) - 1)  # VAE and UNet downsampling
@@ -34,10 +35,12 @@ class SDSGuidance:
                             hint=f"use e.g. 256 or {sd.resolution} (the model's own)")
         self.profile = profile
         self.stage_seconds: dict[str, float] = {}
+        self.stage_cpu_seconds: dict[str, float] = {}
         self.guidance_scale = float(guidance_scale)
         self.clip_value, self.clip_norm = clip_value, clip_norm
         self.generator = torch.Generator().manual_seed(seed) if seed is not None else None
-        self.sampler = TimestepSampler(sd.alphas_cumprod.cpu(), t_range, self.generator)
+        self.sampler = TimestepSampler(sd.alphas_cumprod.cpu(), t_range, self.generator, t_schedule)
+        self.total_steps = total_steps
         self._cache: dict[str, Tensor] = {}
         self.set_prompt(prompt, negative_prompt)
 
@@ -58,7 +61,8 @@ class SDSGuidance:
         return torch.randn(like.shape, generator=self.generator, dtype=like.dtype).to(like.device)
 
     def loss(self, rgb: Tensor, mask: Tensor | None = None, view: int = 0, step: int = 0) -> GuidanceResult:
-        """SDS loss of a render (B,3,H,W) in [0,1]; `mask`, `view`, `step` are unused (SD sees the whole view)."""
+        """SDS loss of a render (B,3,H,W) in [0,1]; `step` / total_steps drives an annealed t schedule; `mask`
+        and `view` are unused (SD sees the whole view)."""
         sd = self.sd
         res = self.resolution
         self._tick(None)
@@ -67,7 +71,7 @@ class SDSGuidance:
         self._tick("resize")
         latents = sd.encode_images(x, self.generator)
         self._tick("encode_forward")
-        t = self.sampler.sample()
+        t = self.sampler.sample(step / self.total_steps if self.total_steps else 0.0)
         with torch.no_grad():
             noise = self._noise(latents)
             t_batch = torch.full((latents.shape[0],), t, device=latents.device, dtype=torch.long)
@@ -87,9 +91,10 @@ class SDSGuidance:
         if not self.profile:
             return
         synchronize(self.sd.device)
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         if stage is None:
-            self.stage_seconds = {}
+            self.stage_seconds, self.stage_cpu_seconds = {}, {}
         else:
             self.stage_seconds[stage] = now - self._t_last
-        self._t_last = now
+            self.stage_cpu_seconds[stage] = cpu - self._cpu_last
+        self._t_last, self._cpu_last = now, cpu

@@ -81,6 +81,9 @@ class RepaintConfig:
     # the side SD sees the render at; None = the model's own (512 for SD 1.5 / 2-base). 256 costs ~1/4 but
     # SD draws less well below its training resolution.
     sds_resolution: int | None = None
+    # SD's timestep draw: 'uniform' on [0.02, 0.98] T (official), or 'annealed': the upper bound falls to
+    # 0.5 T over the run (threestudio's schedule; meant to need fewer steps, not measured here: no real weights)
+    t_schedule: str = "uniform"
 
 
 DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the unmasked target
@@ -274,7 +277,8 @@ class RepaintTrainer:
                                   settings=settings, device=self.device, seed=self.cfg.seed,
                                   unet_precision=self.cfg.sd_unet_precision,
                                   tiny_autoencoder=self.cfg.sd_tiny_autoencoder,
-                                  sds_resolution=self.cfg.sds_resolution)
+                                  sds_resolution=self.cfg.sds_resolution, t_schedule=self.cfg.t_schedule,
+                                  total_steps=self.cfg.steps)
         raise UserError(f"unknown guidance {kind!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
 
     def _build_clip(self, clip_path):
