@@ -94,3 +94,19 @@ def test_cli_prints_the_estimate_and_time_left(tmp_path, capsys, monkeypatch):
     assert "step 3/3" in out and " left)" in out
     assert main(["repaint", str(ws.root), "--guidance", "sd", "--prompt", "x", "--sds-resolution", "100"]) == 2
     assert "multiple of 64" in capsys.readouterr().err
+
+
+def test_repaint_panel_estimate_uses_the_chosen_guidance_steps_and_device():
+    from types import SimpleNamespace
+
+    from app.panels.repaint import _estimate
+    from repaint_scene import make_cameras
+
+    cams = make_cameras(size=16)
+    state = SimpleNamespace(backend="sd", steps=200, scene_info={"cameras": cams, "device": "cpu"})
+    app = SimpleNamespace(state=state, cache={})
+    text = _estimate(app)
+    want = estimate_before_start("sd", 200, 16, 16, CPU).describe()
+    assert text == want and "200 steps" in text and "bench sdcost" in text
+    state.backend, state.steps = "recolor", 10
+    assert _estimate(app) == estimate_before_start("recolor", 10, 16, 16, CPU).describe() != text

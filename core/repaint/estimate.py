@@ -21,9 +21,10 @@ SD_STEP_SECONDS_512 = {
     "cpu": {("fp32", False): 48.0, ("bf16", False): 30.0, ("fp32", True): 30.0, ("bf16", True): 12.0},
 }
 SD_REFERENCE_RESOLUTION = 512
-# Field render + backward (rgb only) per megapixel of render, CPU, from RepaintTrainer.time_field_step on the
-# demo scene at 128 px (contended). Used only when no step was timed on the device.
-FIELD_SECONDS_PER_MPIX = {"cpu": 40.0}
+# Field step (render + backward + update) per megapixel of rays on a CPU: the README's stage-1 figure on this
+# 2-core CPU (17 steps/s at 4096 rays, idle machine) -> 1 / (17 * 4096e-6) = 14.4 s/Mpx. Used only where no
+# step was timed on the device (the editor before Repaint); the CLI times one.
+FIELD_SECONDS_PER_MPIX = {"cpu": 14.4}
 
 
 @dataclass
