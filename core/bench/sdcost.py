@@ -34,6 +34,7 @@ class StepOption:
     unet_precision: str = "fp32"
     tiny_autoencoder: bool = False
     sds_resolution: int = 512
+    channels_last: bool = False
 
 
 OPTIONS: dict[str, StepOption] = {  # fp32 ones first: converting the UNet to bf16 is one-way in a run
@@ -43,6 +44,8 @@ OPTIONS: dict[str, StepOption] = {  # fp32 ones first: converting the UNet to bf
     "bf16_unet": StepOption(unet_precision="bf16"),
     "bf16+tiny_ae": StepOption("bf16", True),
     "bf16+tiny_ae+sds_256": StepOption("bf16", True, 256),
+    "bf16+tiny_ae+nhwc": StepOption("bf16", True, 512, True),
+    "bf16+tiny_ae+sds_256+nhwc": StepOption("bf16", True, 256, True),
 }
 
 
@@ -160,9 +163,10 @@ def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, device) -> dict:
     from core.device import synchronize
-    from core.models.sd_speed import unet_dtype
+    from core.models.sd_speed import set_channels_last, unet_dtype
 
     sd.set_unet_dtype(unet_dtype(opt.unet_precision, device))
+    set_channels_last(sd, opt.channels_last)
     sd.tiny_vae = tiny if opt.tiny_autoencoder else None
     guidance.resolution = opt.sds_resolution
     gen = torch.Generator().manual_seed(0)
@@ -243,7 +247,7 @@ def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
     for name in names:
         opt = OPTIONS[name]
         if cuda and opt.unet_precision == "fp32":
-            opt = StepOption("fp16", opt.tiny_autoencoder, opt.sds_resolution)  # the CUDA baseline is fp16
+            opt = StepOption("fp16", opt.tiny_autoencoder, opt.sds_resolution, opt.channels_last)  # the CUDA baseline is fp16
         if opt.unet_precision == "bf16" and ref_grads is None and not cuda:
             sd.set_unet_dtype(torch.float32)
             ref_grads = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)

@@ -36,10 +36,18 @@ def unet_dtype(precision: str, device: torch.device) -> torch.dtype:
     return {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]
 
 
+def set_channels_last(sd: StableDiffusion, on: bool) -> None:
+    """Store the UNet's weights channels-last (NHWC), the layout oneDNN's CPU convolutions run without reorders."""
+    sd.unet.to(memory_format=torch.channels_last if on else torch.contiguous_format)
+
+
 def apply_speed_options(sd: StableDiffusion, unet_precision: str = "auto",
-                        tiny_autoencoder: str | os.PathLike | None = None) -> StableDiffusion:
-    """Set the UNet's precision and, when given, encode through a tiny autoencoder (core.models.taesd)."""
+                        tiny_autoencoder: str | os.PathLike | None = None,
+                        channels_last: bool = False) -> StableDiffusion:
+    """Set the UNet's precision and memory layout and, when given, encode through a tiny autoencoder
+    (core.models.taesd)."""
     sd.set_unet_dtype(unet_dtype(unet_precision, sd.device))
+    set_channels_last(sd, channels_last)
     if tiny_autoencoder:
         from core.models.taesd import check_compatible, load_tiny_autoencoder
 
