@@ -3,8 +3,9 @@
 A step costs the field's render and backward at the edit resolution plus the guidance's step. Before the
 start: the field part is a first timed render+backward on this device when the caller has one (the CLI
 times one, see RepaintTrainer.time_field_step), else a stored per-pixel figure; the Stable Diffusion part
-is `bench sdcost`'s stored figure for the device kind and speed options at 512 px, scaled by the SDS
-resolution's pixel count (UNet and encoder costs are per latent cell). Offline guidances cost next to
+is `bench sdcost`'s stored figure for the device kind and speed options at 512 px, scaled to the SDS
+resolution as a fixed part plus a part per pixel (the UNet reads all its weights whatever the latent size:
+256 px measured at ~0.45 of 512 px, not 0.25). Offline guidances cost next to
 nothing beyond the render. While running, the time left is the mean of the recent measured steps times
 the steps left (the first, warm-up step is left out once there are others).
 """
@@ -15,10 +16,14 @@ from dataclasses import dataclass
 
 import torch
 
-# bench sdcost, SD 1.5 architecture, 512-px SDS, 2-core AMD EPYC (avx512_bf16), measured while 6 other
-# jobs shared the 2 cores (so these overstate an idle machine's cost): seconds per step by option.
+# Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder), and the fixed fraction f of it that
+# does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core AMD EPYC
+# (avx512_bf16), SD 1.5 architecture: the idle baseline is the issue's 30 s (bench sdcost, 26-35 s); the
+# options are 30 s / their speed-up measured side by side in one bench sdcost run on the shared machine
+# (contended), f from the same run's 256 px vs 512 px steps.
 SD_STEP_SECONDS_512 = {
-    "cpu": {("fp32", False): 48.0, ("bf16", False): 30.0, ("fp32", True): 30.0, ("bf16", True): 12.0},
+    "cpu": {("fp32", False): (30.0, 0.23), ("bf16", False): (22.7, 0.23), ("fp32", True): (17.9, 0.31),
+            ("bf16", True): (8.0, 0.31)},
 }
 SD_REFERENCE_RESOLUTION = 512
 # Field step (render + backward + update) per megapixel of rays on a CPU: the README's stage-1 figure on this
@@ -83,13 +88,15 @@ def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", ti
     if table is None:
         return None, f"no stored Stable Diffusion figure for {dev.type}"
     precision = {torch.float32: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[unet_dtype(unet_precision, dev)]
-    base = table.get((precision, bool(tiny_autoencoder)))
-    if base is None:
+    entry = table.get((precision, bool(tiny_autoencoder)))
+    if entry is None:
         return None, f"no stored Stable Diffusion figure for {dev.type} {precision}"
+    base, fixed = entry
     res = sds_resolution or SD_REFERENCE_RESOLUTION
-    scale = (res / SD_REFERENCE_RESOLUTION) ** 2
+    scale = fixed + (1.0 - fixed) * (res / SD_REFERENCE_RESOLUTION) ** 2
     enc = "tiny autoencoder" if tiny_autoencoder else "VAE"
-    return base * scale, f"SD {base:.3g} s/step from bench sdcost ({dev.type}, {precision} UNet, {enc}) x ({res}/512)^2"
+    return base * scale, (f"SD {base:.3g} s/step at 512 px from bench sdcost ({dev.type}, {precision} UNet, {enc}), "
+                          f"x {scale:.2f} at {res} px")
 
 
 def estimate_repaint(kind: str, steps: int, render_size: tuple[int, int], device: torch.device | str,
