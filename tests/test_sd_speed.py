@@ -83,6 +83,8 @@ def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monk
                         sd_path=sd.path, steps=3, max_samples=256,
                         sd_tiny_autoencoder=str(folder), sd_unet_precision="bf16")
     assert tr.guidance.sd.tiny_vae is not None and tr.guidance.sd.unet_dtype == torch.bfloat16
+    conv = tr.guidance.sd.unet.conv_in.weight
+    assert conv.is_contiguous(memory_format=torch.channels_last) and not conv.is_contiguous()  # the default
     before = field.col.detach().clone()
     infos = [tr.step() for _ in range(3)]
     assert all(not i["skipped"] and np.isfinite(i["loss"]) for i in infos)

@@ -44,6 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a TAESD tiny autoencoder (local folder, or a model id in the Hugging Face cache such as "
                         "madebyollin/taesd) encoding the render instead of SD's VAE: a much cheaper step on a CPU, "
                         "approximate latents")
+    p.add_argument("--no-channels-last", dest="channels_last", action="store_false",
+                   help="keep Stable Diffusion's UNet in PyTorch's default memory layout (channels-last, the "
+                        "default, runs oneDNN's CPU convolutions without reorders: ~1.15x faster per step)")
     p.add_argument("--t-schedule", default="uniform", choices=("uniform", "annealed"),
                    help="Stable Diffusion timestep draw: uniform over 2-98%% of T (official), or annealed: the "
                         "upper bound falls to 50%% of T over the run (detail late, for shorter runs)")
@@ -125,7 +128,8 @@ def run(args: argparse.Namespace) -> int:
                         lambda_clip=lambda_clip, resolution=args.resolution,
                         optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed,
                         sd_unet_precision=args.sd_precision, sd_tiny_autoencoder=args.tiny_autoencoder,
-                        sds_resolution=args.sds_resolution, t_schedule=args.t_schedule)
+                        sds_resolution=args.sds_resolution, t_schedule=args.t_schedule,
+                        sd_channels_last=args.channels_last)
     if args.steps is not None:
         cfg.steps = args.steps
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,

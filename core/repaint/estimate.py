@@ -5,7 +5,7 @@ start: the field part is a first timed render+backward on this device when the c
 times one, see RepaintTrainer.time_field_step), else a stored per-pixel figure; the Stable Diffusion part
 is `bench sdcost`'s stored figure for the device kind and speed options at 512 px, scaled to the SDS
 resolution as a fixed part plus a part per pixel (the UNet reads all its weights whatever the latent size:
-256 px measured at ~0.45 of 512 px, not 0.25). Offline guidances cost next to
+256 px measured at 0.30-0.48 of 512 px, not 0.25). Offline guidances cost next to
 nothing beyond the render. While running, the time left is the mean of the recent measured steps times
 the steps left (the first, warm-up step is left out once there are others).
 """
@@ -18,12 +18,13 @@ import torch
 
 # Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder), and the fixed fraction f of it that
 # does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core AMD EPYC
-# (avx512_bf16), SD 1.5 architecture: the idle baseline is the issue's 30 s (bench sdcost, 26-35 s); the
-# options are 30 s / their speed-up measured side by side in one bench sdcost run on the shared machine
-# (contended), f from the same run's 256 px vs 512 px steps.
+# (avx512_bf16), SD 1.5 architecture, channels-last UNet. The idle fp32 baseline is the issue's 30 s (bench
+# sdcost, 26-35 s); each option is 30 s / its wall-time speed-up measured side by side in one bench sdcost run
+# on the shared machine (contended; CPU-time speed-ups were lower: bf16 + tiny 2.9x vs 5.05x wall, so these
+# may be optimistic by up to ~1.5x). f from the same runs' 256 px / 512 px steps (0.30-0.48 -> f 0.15-0.31).
 SD_STEP_SECONDS_512 = {
     "cpu": {("fp32", False): (30.0, 0.23), ("bf16", False): (22.7, 0.23), ("fp32", True): (17.9, 0.31),
-            ("bf16", True): (8.0, 0.31)},
+            ("bf16", True): (5.9, 0.15)},
 }
 SD_REFERENCE_RESOLUTION = 512
 # Field step (render + backward + update) per megapixel of rays on a CPU: the README's stage-1 figure on this
