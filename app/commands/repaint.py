@@ -18,7 +18,8 @@ HELP = "repaint the selected region (stage 2) under a guidance and save it as a 
 # RepaintConfig fields the command sets from its flags (--lambda-unmask -> lambda_unmask); each flag defaults to
 # the field's default, so the CLI, the editor and the benchmarks share one set of defaults.
 CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_reduction", "lambda_clip", "resolution", "optimizer", "lr",
-                "mask_dilation", "seed")
+                "mask_dilation", "seed", "sd_unet_precision", "sd_tiny_autoencoder", "sd_channels_last",
+                "sds_resolution", "t_schedule")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -50,6 +51,24 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=d.lr, help="base learning rate (overrides the preset)")
     p.add_argument("--mask-dilation", type=int, default=d.mask_dilation, help="pixels to grow the mask by")
     p.add_argument("--seed", type=int, default=d.seed)
+    p.add_argument("--sd-precision", dest="sd_unet_precision", default=d.sd_unet_precision,
+                   choices=("auto", "fp32", "bf16", "fp16"),
+                   help="precision of Stable Diffusion's UNet (no gradient flows through it): auto = fp16 on CUDA, "
+                        "bf16 on a CPU with native bf16 (avx512_bf16/AMX), else fp32")
+    p.add_argument("--tiny-autoencoder", dest="sd_tiny_autoencoder", default=d.sd_tiny_autoencoder,
+                   metavar="PATH_OR_ID",
+                   help="a TAESD tiny autoencoder (local folder, or a model id in the Hugging Face cache such as "
+                        "madebyollin/taesd) encoding the render instead of SD's VAE: a much cheaper step on a CPU, "
+                        "approximate latents")
+    p.add_argument("--no-channels-last", dest="sd_channels_last", action="store_false",
+                   help="keep Stable Diffusion's UNet in PyTorch's default memory layout (channels-last, the "
+                        "default, runs oneDNN's CPU convolutions without reorders: ~1.15x faster per step)")
+    p.add_argument("--t-schedule", default=d.t_schedule, choices=("uniform", "annealed"),
+                   help="Stable Diffusion timestep draw: uniform over 2-98%% of T (official), or annealed: the "
+                        "upper bound falls to 50%% of T over the run (detail late, for shorter runs)")
+    p.add_argument("--sds-resolution", type=int, default=d.sds_resolution,
+                   help="side in pixels Stable Diffusion sees the render at (default: the model's, 512); 256 makes "
+                        "a step ~4x cheaper, with less detail")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
 
@@ -70,6 +89,9 @@ def check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--lambda-clip must not be negative, got {args.lambda_clip}")
     if args.resolution is not None and args.resolution < 8:
         raise UserError(f"--resolution must be at least 8 pixels, got {args.resolution}")
+    if args.sds_resolution is not None and (args.sds_resolution < 64 or args.sds_resolution % 64):
+        raise UserError(f"--sds-resolution must be a multiple of 64 pixels, got {args.sds_resolution}",
+                        hint="use 256 (cheaper) or 512 (SD 1.5 / 2-base's own)")
     if args.mask_dilation < 0:
         raise UserError(f"--mask-dilation must not be negative, got {args.mask_dilation}")
     if registry.get(args.guidance).needs_prompt and not args.prompt.strip():
@@ -107,6 +129,7 @@ def open_workspace(path: str, device=None):
 
 
 def run(args: argparse.Namespace) -> int:
+    from core.repaint.estimate import format_duration
     from core.repaint.trainer import RepaintTrainer
 
     check_args(args)
@@ -126,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
     h, w = trainer.size
     print(f"repaint ({trainer.kind}) of {sum(int(m.any()) for m in masks)}/{len(masks)} masked views at {w}x{h}, "
           f"{cfg.steps} steps on {trainer.device}")
+    print(trainer.estimate().describe(), flush=True)
 
     stop = threading.Event()
 
@@ -139,8 +163,8 @@ def run(args: argparse.Namespace) -> int:
         n = info["step"]
         if n == 1 or n % max(1, cfg.steps // 20) == 0 or info.get("done"):
             parts = " ".join(f"{k} {info[k]:.4g}" for k in ("loss", "guidance", "unmask", "clip") if k in info)
-            print(f"step {n}/{cfg.steps} {parts} ({trainer.train_seconds:.1f} s, {trainer.skipped_steps} skipped)",
-                  flush=True)
+            print(f"step {n}/{cfg.steps} {parts} ({trainer.train_seconds:.1f} s, {trainer.skipped_steps} skipped, "
+                  f"{format_duration(info.get('eta_s'))} left)", flush=True)
 
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, on_sigint) if in_main else None

@@ -9,6 +9,7 @@ from imgui_bundle import imgui
 from app.panels.common import remember_item, unavailable
 from app.state import EditorState
 from core.repaint import registry
+from core.repaint.estimate import format_duration
 
 
 def repaint_request(s: EditorState) -> dict[str, Any]:
@@ -31,6 +32,30 @@ def _model_status(app, kind: str, flag: str) -> str | None:
             cache[key] = None
         except Exception as exc:  # ModelNotFoundError, or the resolver not built
             cache[key] = str(exc)
+    return cache[key]
+
+
+def _estimate(app) -> str:
+    """The expected repaint time for the chosen guidance, steps and scene on the engine's device (cached)."""
+    s = app.state
+    cams = s.scene_info.get("cameras")
+    cfg = s.repaint_config
+    key = (s.backend, int(cfg.steps), cfg.resolution, cfg.sd_unet_precision, cfg.sd_tiny_autoencoder,
+           cfg.sds_resolution, s.scene_info.get("device"), cams is not None)
+    cache = app.cache.setdefault("repaint_estimate", {})
+    if key not in cache:
+        try:
+            from core.device import get_device
+            from core.repaint.estimate import estimate_before_start
+
+            w, h = (int(cams.width[0]), int(cams.height[0])) if cams is not None else (128, 128)
+            cache[key] = estimate_before_start(s.backend, max(1, int(cfg.steps)), w, h,
+                                               s.scene_info.get("device") or get_device(), cfg.resolution,
+                                               unet_precision=cfg.sd_unet_precision,
+                                               tiny_autoencoder=bool(cfg.sd_tiny_autoencoder),
+                                               sds_resolution=cfg.sds_resolution).describe()
+        except Exception as exc:  # a bad field value must not break the panel
+            cache[key] = f"estimated time: unknown ({exc})"
     return cache[key]
 
 
@@ -73,6 +98,7 @@ def draw(app) -> None:
     if unavailable(app, "repaint"):
         return
     if not s.repaint_running:
+        imgui.text_wrapped(_estimate(app))
         if imgui.button("Repaint##start"):  # the header is also "Repaint": a distinct id
             app.start_repaint()
         remember_item(app, "repaint")
@@ -80,6 +106,7 @@ def draw(app) -> None:
         st = s.last_status
         done = float(st.get("step", 0)) / max(1, st.get("steps", cfg.steps)) if st.get("phase") == "repaint" else 0.0
         imgui.progress_bar(min(done, 1.0), imgui.ImVec2(-1, 0))
+        imgui.text(f"step {st.get('step', 0)}/{st.get('steps', cfg.steps)}, {format_duration(st.get('eta_s'))} left")
         if imgui.button("Resume" if not s.training else "Pause"):
             app.set_training(not s.training)
         imgui.same_line()

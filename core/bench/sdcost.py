@@ -1,118 +1,278 @@
-"""`repaint-nerf bench sdcost`: what one Stable Diffusion score-distillation step costs on this device.
+"""What one Stable Diffusion score-distillation step costs on this device, stage by stage and option by option.
 
 No SD weights can be downloaded here, but compute does not depend on weight values: the benchmark builds
-SD 1.5's UNet, VAE and CLIP text encoder from their published configurations with random weights,
-assembles them as the loader does (core.models.sd.assemble: fp16 and attention slicing on CUDA, fp32 on
-a CPU) and times SDSGuidance steps (VAE encode with gradient at 512 px, a classifier-free UNet pass, the
-backward to the render) on a render of --size pixels, with peak memory; then projects the paper's
-stage-2 length (10000 steps). The field's own render and backward per step are `bench edit`'s figures.
+SD 1.5's (or 2-base's) UNet, VAE and CLIP text encoder from their published configurations with random
+weights, assembles them as the loader does (core.models.sd.assemble) and times SDSGuidance steps on a
+render of `size` pixels: resize to the SDS resolution, VAE encode forward, the classifier-free UNet pass,
+the loss, and the backward (through the encoder to the render). Every speed option (core.models.sd_speed,
+SDSGuidance's sds_resolution) runs in the same process, one after the other, so their ratios are fair on a
+shared machine; each step's and stage's CPU time is reported too (on a machine shared with other jobs the
+CPU time per step / threads is a steadier guess of an idle machine's wall time than the contended wall
+time); peak resident memory is sampled per option. The bf16 UNet's guidance gradient is compared
+with fp32's (cosine) on fixed latents, noise and timesteps. The driver is app/bench/sdcost.py.
 """
 from __future__ import annotations
 
-import argparse
-import json
-import resource
+import hashlib
 import statistics
+import threading
 import time
-from pathlib import Path
+from dataclasses import asdict, dataclass
+from typing import Callable
 
-HELP = "cost of one Stable Diffusion 1.5 score-distillation step (SD 1.5's architecture, random weights)"
+import torch
+
 PAPER_STEPS = 10000  # stage 2 in the paper (Implementation Details)
+FAMILIES = ("sd15", "sd2base")
+COSINE_TIMESTEPS = (200, 800)
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--steps", type=int, default=3, help="timed steps (after one warm-up step)")
-    p.add_argument("--size", type=int, default=128, help="render side in pixels (resized to 512 for the VAE)")
-    p.add_argument("--json", required=True, help="output JSON path")
-    p.add_argument("--device", default=None)
+@dataclass(frozen=True)
+class StepOption:
+    """One way to run an SDS step: UNet precision, tiny autoencoder or the VAE, SDS resolution."""
+
+    unet_precision: str = "fp32"
+    tiny_autoencoder: bool = False
+    sds_resolution: int = 512
+    channels_last: bool = False
 
 
-class _FixedTokenizer:
-    """Token ids of the right shape for the text encoder (the prompt's content does not change the cost)."""
+OPTIONS: dict[str, StepOption] = {  # fp32 ones first: converting the UNet to bf16 is one-way in a run
+    "baseline": StepOption(),
+    "tiny_ae": StepOption(tiny_autoencoder=True),
+    "sds_256": StepOption(sds_resolution=256),
+    "bf16_unet": StepOption(unet_precision="bf16"),
+    "bf16+tiny_ae": StepOption("bf16", True),
+    "bf16+tiny_ae+sds_256": StepOption("bf16", True, 256),
+    "bf16+tiny_ae+nhwc": StepOption("bf16", True, 512, True),
+    "bf16+tiny_ae+sds_256+nhwc": StepOption("bf16", True, 256, True),
+}
+
+
+class _HashTokenizer:
+    """Token ids of the right shape, different per prompt (so the conditional and unconditional passes differ)."""
 
     model_max_length = 77
 
+    def __init__(self, vocab_size: int = 49408):
+        self.vocab_size = vocab_size
+
     def __call__(self, prompts, **_):
-        import torch
+        rows = []
+        for p in prompts:
+            h = hashlib.sha256(p.encode()).digest()
+            rows.append([h[i % len(h)] * 193 % self.vocab_size for i in range(self.model_max_length)])
 
         class _Out:
-            input_ids = torch.zeros(len(prompts), 77, dtype=torch.long)
+            input_ids = torch.tensor(rows, dtype=torch.long)
         return _Out()
 
 
-def build_sd15(device, dtype):
-    """SD 1.5's parts from their published configurations, random weights, placed like a loaded model."""
-    import torch
+def build_sd(family: str, device, dtype):
+    """SD 1.5's or 2-base's parts from their published configurations, random weights, placed like a loaded model."""
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
 
     from core.models.sd import assemble
 
+    if family not in FAMILIES:
+        raise ValueError(f"unknown family {family!r}; known: {FAMILIES}")
+    sd2 = family == "sd2base"
     torch.manual_seed(0)
     unet = UNet2DConditionModel(
         sample_size=64, in_channels=4, out_channels=4, layers_per_block=2,
-        block_out_channels=(320, 640, 1280, 1280), cross_attention_dim=768, attention_head_dim=8,
+        block_out_channels=(320, 640, 1280, 1280), cross_attention_dim=1024 if sd2 else 768,
+        attention_head_dim=(5, 10, 20, 20) if sd2 else 8, use_linear_projection=sd2,
         down_block_types=("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
         up_block_types=("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3)
     vae = AutoencoderKL(
         in_channels=3, out_channels=3, latent_channels=4, layers_per_block=2,
         block_out_channels=(128, 256, 512, 512), down_block_types=("DownEncoderBlock2D",) * 4,
         up_block_types=("UpDecoderBlock2D",) * 4, sample_size=512)
-    text = CLIPTextModel(CLIPTextConfig(vocab_size=49408, hidden_size=768, intermediate_size=3072,
-                                        num_hidden_layers=12, num_attention_heads=12, max_position_embeddings=77))
+    text_cfg = (dict(hidden_size=1024, intermediate_size=4096, num_hidden_layers=23, num_attention_heads=16,
+                     hidden_act="gelu") if sd2 else
+                dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12))
+    text = CLIPTextModel(CLIPTextConfig(vocab_size=49408, max_position_embeddings=77, **text_cfg))
     scheduler = DDIMScheduler(num_train_timesteps=1000, beta_schedule="scaled_linear", beta_start=0.00085,
                               beta_end=0.012, clip_sample=False, set_alpha_to_one=False, steps_offset=1)
-    return assemble(unet, vae, text, _FixedTokenizer(), scheduler, device, dtype)
+    return assemble(unet, vae, text, _HashTokenizer(), scheduler, device, dtype)
+
+
+def build_tiny_autoencoder(device):
+    """TAESD's architecture (diffusers AutoencoderTiny defaults) with random weights, frozen."""
+    from diffusers import AutoencoderTiny
+
+    torch.manual_seed(1)
+    return AutoencoderTiny().eval().requires_grad_(False).to(device)
+
+
+class PeakRSS:
+    """Peak resident memory of this process while active, sampled every 20 ms from /proc (Linux)."""
+
+    def __init__(self, period: float = 0.02):
+        self.period, self.peak, self._stop = period, 0, threading.Event()
+
+    @staticmethod
+    def current_mb() -> float:
+        try:
+            with open("/proc/self/statm") as f:
+                import os
+
+                return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2 ** 20
+        except OSError:
+            return float("nan")
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, self.current_mb())
+            self._stop.wait(self.period)
+
+    def __enter__(self) -> "PeakRSS":
+        self.peak = self.current_mb()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.peak = max(self.peak, self.current_mb())
 
 
 def _count(m) -> int:
     return sum(p.numel() for p in m.parameters())
 
 
-def run(args: argparse.Namespace) -> int:
-    import torch
+def _guidance_grads(sd, guidance, latents: torch.Tensor, noise: torch.Tensor) -> list[torch.Tensor]:
+    """The SDS guidance gradient w(t)(eps_hat - eps) at COSINE_TIMESTEPS for fixed latents and noise (fp32)."""
+    out = []
+    emb = guidance._embeddings
+    with torch.no_grad():
+        for t in COSINE_TIMESTEPS:
+            tb = torch.full((1,), t, device=sd.device, dtype=torch.long)
+            noisy = sd.scheduler.add_noise(latents, noise, tb)
+            eps = sd.predict_noise(torch.cat([noisy, noisy]), torch.cat([tb, tb]), emb).float()
+            u, c = eps.chunk(2)
+            out.append(guidance.sampler.weight(t) * (u + guidance.guidance_scale * (c - u) - noise))
+    return out
 
-    from core.device import describe, get_device, is_cuda, synchronize
+
+def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(torch.nn.functional.cosine_similarity(a.flatten().double(), b.flatten().double(), dim=0))
+
+
+def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, device) -> dict:
+    from core.device import synchronize
+    from core.models.sd_speed import set_channels_last, unet_dtype
+
+    sd.set_unet_dtype(unet_dtype(opt.unet_precision, device))
+    set_channels_last(sd, opt.channels_last)
+    sd.tiny_vae = tiny if opt.tiny_autoencoder else None
+    guidance.resolution = opt.sds_resolution
+    gen = torch.Generator().manual_seed(0)
+    totals, cpus, stages, cpu_stages = [], [], [], []
+    with PeakRSS() as mem:
+        for i in range(steps + 1):
+            rgb = torch.rand(1, 3, size, size, generator=gen).to(device).requires_grad_(True)
+            synchronize(device)
+            t0, c0 = time.perf_counter(), time.process_time()
+            out = guidance.loss(rgb)
+            t1, c1 = time.perf_counter(), time.process_time()
+            out["loss"].backward()
+            synchronize(device)
+            t2, c2 = time.perf_counter(), time.process_time()
+            if not (rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())):
+                raise RuntimeError(f"non-finite gradient with option {opt}")
+            if i:  # the first step warms up allocators and kernels
+                totals.append(t2 - t0)
+                cpus.append(c2 - c0)
+                stages.append({**guidance.stage_seconds, "rest": (t1 - t0) - sum(guidance.stage_seconds.values()),
+                               "backward": t2 - t1})
+                cpu_stages.append({**guidance.stage_cpu_seconds,
+                                   "rest": (c1 - c0) - sum(guidance.stage_cpu_seconds.values()), "backward": c2 - c1})
+    step_s = statistics.median(totals)
+    names = stages[0].keys()
+    return {"settings": asdict(opt), "step_seconds": step_s, "step_seconds_all": totals,
+            "stages_seconds": {k: statistics.median(s[k] for s in stages) for k in names},
+            "step_cpu_seconds": statistics.median(cpus),
+            "stages_cpu_seconds": {k: statistics.median(s[k] for s in cpu_stages) for k in names},
+            "idle_step_seconds_guess": statistics.median(cpus) / max(1, torch.get_num_threads()),
+            "peak_rss_mb": mem.peak, "paper_steps_hours": step_s * PAPER_STEPS / 3600.0}
+
+
+def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
+            options: list[str] | None = None, progress: Callable[[str], None] | None = None,
+            on_option: Callable[[dict], None] | None = None) -> dict:
+    """Time an SDS step for each of `options` (names in OPTIONS; default all) in this one process.
+
+    Returns figures per option (median step and per-stage wall and CPU seconds, peak RSS), their speed-up
+    over the baseline, and the cosine between the bf16 and fp32 UNets' guidance gradients. `on_option(result)`
+    gets the result so far after each option (a long run's figures survive an interruption).
+    """
+    from core.device import describe, get_device, is_cuda
+    from core.errors import UserError
     from core.repaint.sds import SDSGuidance
 
-    from core.errors import UserError
-
-    if args.steps < 1 or args.size < 8:
-        raise UserError(f"--steps must be at least 1 and --size at least 8 (got {args.steps}, {args.size})")
-    device = get_device(args.device)
-    dtype = torch.float16 if is_cuda(device) else torch.float32
+    names = list(OPTIONS) if not options else options
+    unknown = [n for n in names if n not in OPTIONS]
+    if unknown or steps < 1 or size < 8:
+        raise UserError(f"bad sdcost request: unknown options {unknown}, steps {steps}, size {size}",
+                        hint=f"options: {', '.join(OPTIONS)}; steps >= 1; size >= 8")
+    say = progress or (lambda _m: None)
+    device = get_device(device)
+    cuda = is_cuda(device)
+    base_dtype = torch.float16 if cuda else torch.float32
     t0 = time.perf_counter()
-    sd = build_sd15(device, dtype)
+    with PeakRSS() as mem_build:
+        sd = build_sd(family, device, base_dtype)
     build_s = time.perf_counter() - t0
-    guidance = SDSGuidance(sd, "a blue rose in leaves", seed=0)
-    if is_cuda(device):
-        torch.cuda.reset_peak_memory_stats(device)
-    times = []
-    for i in range(args.steps + 1):
-        rgb = torch.rand(1, 3, args.size, args.size, device=device, requires_grad=True)
-        synchronize(device)
-        t = time.perf_counter()
-        out = guidance.loss(rgb)
-        out["loss"].backward()
-        synchronize(device)
-        if i:  # the first step warms up allocators and kernels
-            times.append(time.perf_counter() - t)
-        assert rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())
-    step_s = statistics.median(times)
-    result = {
-        "device": describe(device), "dtype": str(dtype).replace("torch.", ""),
-        "architecture": "Stable Diffusion 1.5 (random weights from its configuration)",
+    tiny = build_tiny_autoencoder(device) if any(OPTIONS[n].tiny_autoencoder for n in names) else None
+    guidance = SDSGuidance(sd, "a blue rose in leaves", seed=0, profile=True)
+    result: dict = {
+        "device": describe(device), "threads": torch.get_num_threads(), "family": family,
+        "architecture": f"Stable Diffusion {'2-base' if family == 'sd2base' else '1.5'} "
+                        "(random weights from its configuration)",
         "parameters_m": {"unet": _count(sd.unet) / 1e6, "vae": _count(sd.vae) / 1e6,
-                         "text_encoder": _count(sd.text_encoder) / 1e6},
-        "render_size": args.size, "model_resolution": sd.resolution, "build_seconds": build_s,
-        "step_seconds": step_s, "step_seconds_all": times,
-        "paper_steps": PAPER_STEPS, "paper_steps_hours": step_s * PAPER_STEPS / 3600.0,
-        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+                         "text_encoder": _count(sd.text_encoder) / 1e6,
+                         **({"tiny_autoencoder": _count(tiny) / 1e6} if tiny is not None else {})},
+        "render_size": size, "model_resolution": sd.resolution, "build_seconds": build_s,
+        "build_peak_rss_mb": mem_build.peak, "timed_steps_per_option": steps, "paper_steps": PAPER_STEPS,
+        "options": {},
     }
-    if is_cuda(device):
-        result["peak_gpu_mb"] = torch.cuda.max_memory_allocated(device) / 2 ** 20
-    out_path = Path(args.json)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-    return 0
+    ref_grads = None
+    gen = torch.Generator().manual_seed(2)
+    lat_shape = (1, 4, sd.unet.config.sample_size, sd.unet.config.sample_size)
+    fixed_latents = torch.randn(lat_shape, generator=gen).to(device)
+    fixed_noise = torch.randn(lat_shape, generator=gen).to(device)
+    for name in names:
+        opt = OPTIONS[name]
+        if cuda and opt.unet_precision == "fp32":
+            opt = StepOption("fp16", opt.tiny_autoencoder, opt.sds_resolution, opt.channels_last)  # the CUDA baseline is fp16
+        if opt.unet_precision == "bf16" and ref_grads is None and not cuda:
+            sd.set_unet_dtype(torch.float32)
+            ref_grads = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
+        say(f"sdcost: {name} ...")
+        result["options"][name] = r = _time_option(sd, guidance, tiny, opt, size, steps, device)
+        say(f"sdcost: {name}: {r['step_seconds']:.2f} s/step ({r['step_cpu_seconds']:.1f} CPU s), peak "
+            f"{r['peak_rss_mb']:.0f} MB, " + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_seconds"].items()))
+        _speedups(result)
+        if on_option is not None:
+            on_option(result)
+    if ref_grads is not None:
+        sd.set_unet_dtype(torch.bfloat16)
+        got = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
+        result["bf16_grad_cosine"] = {str(t): _cosine(a, b) for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
+        result["bf16_grad_rel_error"] = {str(t): float((a - b).norm() / a.norm().clamp_min(1e-12))
+                                         for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
+    _speedups(result)
+    return result
+
+
+def _speedups(result: dict) -> None:
+    """Baseline time / option time, by wall time and by CPU time (the steadier one on a shared machine)."""
+    base = result["options"].get("baseline")
+    if base is not None:
+        result["speedup_vs_baseline"] = {n: base["step_seconds"] / r["step_seconds"]
+                                         for n, r in result["options"].items()}
+        result["cpu_speedup_vs_baseline"] = {n: base["step_cpu_seconds"] / r["step_cpu_seconds"]
+                                             for n, r in result["options"].items()}

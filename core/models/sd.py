@@ -36,6 +36,7 @@ class StableDiffusion:
     dtype: torch.dtype
     offload_unet: bool = False
     path: Path | None = None
+    tiny_vae: torch.nn.Module | None = None  # a TAESD-style encoder used instead of the VAE's (core.models.taesd)
     alphas_cumprod: Tensor = field(init=False)
 
     def __post_init__(self) -> None:
@@ -62,6 +63,16 @@ class StableDiffusion:
     def num_train_timesteps(self) -> int:
         return int(self.scheduler.config.num_train_timesteps)
 
+    @property
+    def unet_dtype(self) -> torch.dtype:
+        return next(self.unet.parameters()).dtype
+
+    def set_unet_dtype(self, dtype: torch.dtype) -> None:
+        """Run the (gradient-free) UNet in `dtype`, e.g. bf16 on a CPU with native bf16; its output is
+        returned as is and callers upcast it."""
+        if self.unet_dtype != dtype:
+            self.unet.to(dtype=dtype)
+
     @torch.no_grad()
     def encode_text(self, prompts: list[str]) -> Tensor:
         """Text-encoder hidden states (B, L, D) for the prompts, in the UNet's dtype on the device."""
@@ -73,6 +84,9 @@ class StableDiffusion:
 
     def encode_images(self, x01: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """VAE latents (with gradient) of images (B,3,R,R) in [0,1], scaled by the VAE's latent scale."""
+        if self.tiny_vae is not None:  # TAESD: [-1, 1] in, latents already in the UNet's scale
+            x = x01.to(self.device, next(self.tiny_vae.parameters()).dtype) * 2 - 1
+            return self.tiny_vae.encode(x).latents * float(self.tiny_vae.config.scaling_factor)
         x = x01.to(self.device, self.dtype) * 2 - 1
         posterior = self.vae.encode(x).latent_dist
         return posterior.sample(generator=generator) * self.latent_scale
@@ -83,7 +97,8 @@ class StableDiffusion:
         if self.offload_unet:
             self.unet.to(self.device)
         try:
-            return self.unet(latents.to(self.dtype), t, encoder_hidden_states=embeddings).sample
+            dt = self.unet_dtype
+            return self.unet(latents.to(dt), t, encoder_hidden_states=embeddings.to(dt)).sample
         finally:
             if self.offload_unet:
                 self.unet.to("cpu")

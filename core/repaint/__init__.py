@@ -27,18 +27,23 @@ def __getattr__(name: str):
 def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
                    sd_path: str | os.PathLike | None = None, settings: Mapping[str, Any] | None = None,
                    targets=None, device=None, cpu_offload: bool = False,
-                   single_file_config: str | os.PathLike | None = None, **options) -> Guidance:
+                   single_file_config: str | os.PathLike | None = None, unet_precision: str = "auto",
+                   tiny_autoencoder: str | os.PathLike | None = None, channels_last: bool = False,
+                   **options) -> Guidance:
     """A guidance backend: 'sd' (Stable Diffusion from flag > env > settings) or 'analytic' (needs `targets`).
 
-    `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed).
+    `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed, sds_resolution);
+    `unet_precision`, `tiny_autoencoder` and `channels_last` are SD's speed options (core.models.sd_speed).
     """
     if kind == "sd":
         from core.models.paths import resolve_model_path
         from core.models.sd import load_stable_diffusion
+        from core.models.sd_speed import apply_speed_options
         from core.repaint.sds import SDSGuidance
 
         sd = load_stable_diffusion(resolve_model_path("sd", sd_path, settings), device=device,
                                    cpu_offload=cpu_offload, single_file_config=single_file_config)
+        apply_speed_options(sd, unet_precision, tiny_autoencoder, channels_last)
         return SDSGuidance(sd, prompt, negative_prompt, **options)
     if kind == "analytic":
         from core.repaint.analytic import AnalyticGuidance

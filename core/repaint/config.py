@@ -42,3 +42,18 @@ class RepaintConfig:
     # toward a flat tint, as a diffusion model also repaints surroundings it was not asked to change; the
     # unmask loss (paper Eq. unmask) is what holds them. 0 = the true edited views.
     analytic_drift: float = 0.0
+    # Stable Diffusion step cost (bench sdcost figures in core.repaint.estimate):
+    # the gradient-free UNet's precision: 'auto' = fp16 on CUDA, bf16 on a CPU with native bf16, else fp32.
+    sd_unet_precision: str = "auto"
+    # a TAESD-style tiny autoencoder (local folder or cached id, e.g. madebyollin/taesd) replacing the VAE
+    # encoder and its backward; None keeps the VAE (exact latents, the costliest part of a CPU step).
+    sd_tiny_autoencoder: str | None = None
+    # UNet weights stored channels-last (NHWC): oneDNN convolutions skip layout reorders (bench sdcost: a
+    # bf16 + tiny-autoencoder step 1.12x-1.17x faster on the CPU); False keeps PyTorch's default layout.
+    sd_channels_last: bool = True
+    # the side SD sees the render at; None = the model's own (512 for SD 1.5 / 2-base). 256 costs ~1/4 but
+    # SD draws less well below its training resolution.
+    sds_resolution: int | None = None
+    # SD's timestep draw: 'uniform' on [0.02, 0.98] T (official), or 'annealed': the upper bound falls to
+    # 0.5 T over the run (threestudio's schedule; meant to need fewer steps, not measured here: no real weights)
+    t_schedule: str = "uniform"

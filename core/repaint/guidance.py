@@ -62,13 +62,22 @@ def as_guidance(obj) -> Guidance:
     return _LossOnly(obj)
 
 
+T_SCHEDULES = ("uniform", "annealed")
+ANNEAL_TO = 0.5  # the annealed upper bound's end, as a fraction of T (threestudio's max_step_percent 0.98 -> 0.5)
+
+
 @dataclass
 class TimestepSampler:
-    """t ~ U{floor(lo*T) .. floor(hi*T)} (official: 20..980 of 1000) and w(t) = 1 - alpha_bar_t."""
+    """t ~ U{floor(lo*T) .. floor(hi*T)} (official: 20..980 of 1000) and w(t) = 1 - alpha_bar_t.
+
+    schedule 'annealed': the upper bound falls linearly from hi to max(lo, ANNEAL_TO) over the run (progress
+    0 -> 1), so late steps refine detail at low noise instead of redrawing coarse shapes at high noise.
+    """
 
     alphas_cumprod: Tensor
     t_range: tuple[float, float] = (0.02, 0.98)
     generator: torch.Generator | None = None
+    schedule: str = "uniform"
 
     def __post_init__(self) -> None:
         n = len(self.alphas_cumprod)
@@ -77,9 +86,19 @@ class TimestepSampler:
             raise ValueError(f"t_range must satisfy 0 <= lo <= hi <= 1, got {self.t_range}")
         self.max_step = min(int(n * hi), n - 1)
         self.min_step = min(int(n * lo), self.max_step)  # lo = 1.0 would start past the last timestep
+        if self.schedule not in T_SCHEDULES:
+            raise ValueError(f"unknown timestep schedule {self.schedule!r}; use one of {T_SCHEDULES}")
+        self.anneal_end = max(self.min_step, min(int(n * ANNEAL_TO), self.max_step))
 
-    def sample(self) -> int:
-        return int(torch.randint(self.min_step, self.max_step + 1, (1,), generator=self.generator).item())
+    def upper(self, progress: float = 0.0) -> int:
+        """The largest timestep drawn at `progress` (0..1) of the run."""
+        if self.schedule == "uniform":
+            return self.max_step
+        p = min(max(float(progress), 0.0), 1.0)
+        return int(round(self.max_step + p * (self.anneal_end - self.max_step)))
+
+    def sample(self, progress: float = 0.0) -> int:
+        return int(torch.randint(self.min_step, self.upper(progress) + 1, (1,), generator=self.generator).item())
 
     def weight(self, t: int) -> float:
         return float(1.0 - self.alphas_cumprod[t])

@@ -81,7 +81,10 @@ def _sd(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
 
     settings = t.workspace.settings if t.workspace is not None else None
     return build_guidance("sd", prompt=t.prompt, negative_prompt=inputs.negative_prompt, sd_path=inputs.sd_path,
-                          settings=settings, device=t.device, seed=t.cfg.seed)
+                          settings=settings, device=t.device, seed=t.cfg.seed,
+                          unet_precision=t.cfg.sd_unet_precision, tiny_autoencoder=t.cfg.sd_tiny_autoencoder,
+                          channels_last=t.cfg.sd_channels_last, sds_resolution=t.cfg.sds_resolution,
+                          t_schedule=t.cfg.t_schedule, total_steps=t.cfg.steps)
 
 
 GUIDANCES: dict[str, GuidanceSpec] = {s.name: s for s in (

@@ -32,6 +32,7 @@ from core.repaint import registry
 from core.repaint.config import RepaintConfig  # noqa: F401  (defined in config.py; imported from here too)
 from core.repaint.dilate import dilate
 from core.repaint.guidance import as_guidance
+from core.repaint.estimate import Estimate, Progress, estimate_repaint
 from core.repaint.region import mark_region_occupied, selection_region
 from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from core.train.checkpoint import Checkpoint, split_state
@@ -131,6 +132,7 @@ class RepaintTrainer:
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
+        self.progress = Progress(self.cfg.steps)
         self.spikes = SpikeDetector()  # on the unmask loss: the guidance loss swings with t by design
         self.done = False
         self.cancelled = False
@@ -299,8 +301,10 @@ class RepaintTrainer:
             dt = time.perf_counter() - t0
             self.train_seconds += dt
             info.update(spike=self.spikes.update(info.get("unmask", float("nan"))), spikes=self.spikes.spikes)
+            self.progress.update(dt)
             info.update(step=self.step_count, skipped=skipped, skipped_steps=self.skipped_steps, seconds=dt,
-                        phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]))
+                        phase="repaint", lr=float(self.optimizer.param_groups[0]["lr"]), steps=self.cfg.steps,
+                        eta_s=self.progress.seconds_left(self.step_count))
             self.history.append(info)
             if self.on_snapshot is not None and self.cfg.snapshot_every and \
                     self.step_count % self.cfg.snapshot_every == 0:
@@ -309,6 +313,27 @@ class RepaintTrainer:
                 self.finish()
                 info["done"] = True
             return info
+
+    def time_field_step(self) -> float:
+        """Seconds of one render + backward of view 0 at the edit resolution (no update: the field is unchanged)."""
+        synchronize(self.device)
+        t0 = time.perf_counter()
+        rgb = self.render_view(0)
+        rgb.float().sum().backward()
+        synchronize(self.device)
+        dt = time.perf_counter() - t0
+        self.optimizer.zero_grad(set_to_none=True)
+        return dt
+
+    def estimate(self, time_field: bool = True) -> Estimate:
+        """Expected duration of this edit (core.repaint.estimate), with a timed field step when `time_field`."""
+        est = estimate_repaint(self.kind, self.cfg.steps, self.size, self.device,
+                               field_step_seconds=self.time_field_step() if time_field else None,
+                               unet_precision=self.cfg.sd_unet_precision,
+                               tiny_autoencoder=bool(self.cfg.sd_tiny_autoencoder),
+                               sds_resolution=self.cfg.sds_resolution)
+        self.progress.prior = est.step_seconds
+        return est
 
     @torch.no_grad()
     def snapshot(self, view: int | None = None) -> dict:
