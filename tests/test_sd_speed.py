@@ -80,7 +80,7 @@ def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monk
     from core.repaint.trainer import RepaintTrainer
 
     tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="sd", prompt="a blue ball",
-                        sd_path=sd.path, steps=3, max_samples=256,
+                        sd_path=sd.path, steps=3, max_samples=256, lambda_clip=0.0,  # no CLIP: this tests the SD path
                         sd_tiny_autoencoder=str(folder), sd_unet_precision="bf16")
     assert tr.guidance.sd.tiny_vae is not None and tr.guidance.sd.unet_dtype == torch.bfloat16
     conv = tr.guidance.sd.unet.conv_in.weight
