@@ -487,23 +487,20 @@ class Engine:
             raise UserError("cannot write the image", path, hint="choose a folder you can write to, ending in .png")
         return str(path)
 
-    def export_turntable(self, cameras_list: list, path: str | Path, fps: int = 24) -> str:
-        """Write an MP4 of the given cameras' renders (the editor passes an orbit around the target)."""
-        import cv2
+    def export_turntable(self, cameras_list: list, path: str | Path, fps: float = 24,
+                         cancel: Callable[[], bool] | None = None,
+                         progress: Callable[[float, str], None] | None = None) -> str:
+        """Write the given cameras' renders as an H.264 .mp4 or a .gif (the editor passes an orbit around the
+        target, or its recorded camera path); frames stream into the encoder, the file appears only when done."""
+        from core.export.common import checkpoint
+        from core.export.video import write_video
 
-        path = Path(path)
         if not cameras_list:
             raise UserError("no frames to write", path)
-        if not path.parent.is_dir():
-            raise UserError("cannot write the video: its folder does not exist", path,
-                            hint="choose a writable path ending in .mp4")
-        frames = [(np.clip(self.render(c, outputs=("rgb",), full=True)["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
-                  for c in cameras_list]
-        h, w = frames[0].shape[:2]
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        if not writer.isOpened():
-            raise UserError("cannot write the video", path, hint="choose a writable path ending in .mp4")
-        for f in frames:
-            writer.write(f[..., ::-1])
-        writer.release()
-        return str(path)
+
+        def frames():
+            for i, c in enumerate(cameras_list):
+                checkpoint(cancel, progress, i / len(cameras_list), f"rendering frame {i + 1}/{len(cameras_list)}")
+                yield self.render(c, outputs=("rgb",), full=True)["rgb"]
+
+        return write_video(frames(), path, fps)["path"]
