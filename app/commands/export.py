@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     m.add_argument("--selection", action="store_true", help="only the saved selection's 3D region")
     m.add_argument("--resolution", type=int, default=256, help="lattice points per axis (default 256)")
     m.add_argument("--level", type=float, default=None,
-                   help="density iso-level (default: where one render step is half opaque)")
+                   help="density iso-level (default: the median density at the surfaces the training views render)")
     m.add_argument("--bbox", type=_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="only this box, in the scene's world units (default: the whole field)")
     m.add_argument("--min-component", type=float, default=0.0, metavar="FRACTION",
@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
 
             opts = MeshOptions(args.resolution, args.level, args.bbox, args.min_component, args.selection)
             info = export_mesh(source, args.out, opts, progress=progress)
-            what = f"{info['vertices']} vertices, {info['faces']} faces"
+            what = f"{info['vertices']} vertices, {info['faces']} faces, level {info['level']:.3g}"
         elif args.kind == "points":
             from core.export.points import export_points
 

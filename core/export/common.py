@@ -22,7 +22,7 @@ class ExportCancelled(UserError):
 def check_output_file(path: str | Path, suffixes: tuple[str, ...], what: str) -> Path:
     """The output file as a Path, with a suffix from `suffixes` and a folder that exists (it is made) and can be
     written to; otherwise a UserError naming the path."""
-    path = Path(path).expanduser()
+    path = Path(path).expanduser().absolute()  # messages name the file wherever the program was started
     if path.suffix.lower() not in suffixes:
         raise UserError(f"cannot tell which {what} format to write from the name", path,
                         hint=f"end the file name in one of: {', '.join(suffixes)}")

@@ -72,7 +72,7 @@ def export_dataset(source, out: str | Path, masks: bool | list = True, cancel: C
     of per-view bool masks. Returns facts for the message (path, frames, masks, bytes, seconds)."""
     from core.render.renderer import render_camera
 
-    out = Path(out).expanduser()
+    out = Path(out).expanduser().absolute()
     _check_target(out)
     t0 = time.perf_counter()
     split = source.scene.train

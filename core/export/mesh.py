@@ -24,22 +24,42 @@ MESH_SUFFIXES = (".ply", ".obj", ".glb")
 COLOR_OFFSET_VOXELS = 2.0  # the colour ray starts this many lattice spacings outside the vertex
 COLOR_CHUNK = 1 << 16
 REGION_CHUNK = 1 << 20  # lattice points per selection test
+LEVEL_VIEWS = 8  # training views that choose the default iso-level
 
 
 @dataclass
 class MeshOptions:
     resolution: int = 256  # lattice points per axis of the box
-    level: float | None = None  # density iso-level (field units); None: default_level
+    level: float | None = None  # density iso-level (field units); None: default_level (from the renders)
     bbox: tuple | None = None  # xmin, ymin, zmin, xmax, ymax, zmax in world units; None: the whole field
     min_component: float = 0.0  # drop connected pieces with fewer than this fraction of the faces
     selection: bool = False  # only the saved selection's 3D region
 
 
-def default_level(source) -> float:
-    """The density at which one step of the renderer (at the trained sample budget) is half opaque,
-    alpha = 1 - exp(-sigma * step) = 0.5: where the renders show a surface."""
+@torch.no_grad()
+def default_level(source, views: int = LEVEL_VIEWS) -> float:
+    """Half the density where the renders put surfaces: the median density at the expected-depth points of the
+    pixels that `views` evenly spread training views see as opaque (opacity above one half). Read off the field
+    itself, so it holds for weakly and strongly trained fields alike; half, so the iso-surface lies on the rising
+    side of the surface (a solid of uniform density has that density at its surface points, and marching cubes
+    needs a level below the peak). With no training view or no opaque pixel: the density at which one render
+    step is half opaque (ln 2 / step)."""
     from core.render.occupancy import default_step
+    from core.render.renderer import render_camera
+    from core.select.cleanup3d import backproject
 
+    sigma = []
+    cams = source.scene.field_cameras("train") if "train" in source.scene.splits else []
+    opts = source.render_options(("depth", "opacity"))
+    dev_cams = cams.to(source.device) if len(cams) else cams
+    for i in np.unique(np.linspace(0, len(cams) - 1, min(views, len(cams))).round().astype(int)):
+        out = render_camera(source.field, source.grid, dev_cams, int(i), opts)
+        keep = (out["opacity"].float().cpu() > 0.5).reshape(-1)
+        if keep.any():
+            pts = backproject(out["depth"].float().cpu(), cams, int(i))[keep].to(source.device)
+            sigma.append(source.field.density(pts).float().cpu())
+    if sigma:
+        return 0.5 * float(torch.cat(sigma).median())
     bound = float(getattr(getattr(source.field, "cfg", None), "bound", getattr(source.field, "bound", 1.0)))
     return math.log(2.0) / default_step(bound, source.max_samples)
 
@@ -140,6 +160,7 @@ def build_mesh(source, opts: MeshOptions, masks=None, cancel: Cancel | None = No
     world = source.scene.norm.to_world(verts.astype(np.float64))
     mesh = trimesh.Trimesh(world, faces, vertex_normals=normals, vertex_colors=colors, process=False)
     mesh = drop_small_pieces(mesh, float(opts.min_component))
+    mesh.metadata["level"] = level
     checkpoint(cancel, progress, 1.0, "mesh ready")
     return mesh
 
@@ -163,4 +184,4 @@ def export_mesh(source, path: str | Path, opts: MeshOptions | None = None, masks
     write_mesh(mesh, path)
     return {"path": str(path), "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
             "bytes": path.stat().st_size, "seconds": time.perf_counter() - t0,
-            "bounds": mesh.bounds.tolist()}
+            "bounds": mesh.bounds.tolist(), "level": float(mesh.metadata["level"])}
