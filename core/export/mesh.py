@@ -45,18 +45,14 @@ def default_level(source, views: int = LEVEL_VIEWS) -> float:
     needs a level below the peak). With no training view or no opaque pixel: the density at which one render
     step is half opaque (ln 2 / step)."""
     from core.render.occupancy import default_step
-    from core.render.renderer import render_camera
     from core.select.cleanup3d import backproject
 
     sigma = []
-    cams = source.scene.field_cameras("train") if "train" in source.scene.splits else []
-    opts = source.render_options(("depth", "opacity"))
-    dev_cams = cams.to(source.device) if len(cams) else cams
-    for i in np.unique(np.linspace(0, len(cams) - 1, min(views, len(cams))).round().astype(int)):
-        out = render_camera(source.field, source.grid, dev_cams, int(i), opts)
-        keep = (out["opacity"].float().cpu() > 0.5).reshape(-1)
+    for i in source.train_views(views):
+        depth, opacity = source.depth_opacity(i)
+        keep = (opacity > 0.5).reshape(-1)
         if keep.any():
-            pts = backproject(out["depth"].float().cpu(), cams, int(i))[keep].to(source.device)
+            pts = backproject(depth, source.scene.field_cameras("train"), i)[keep].to(source.device)
             sigma.append(source.field.density(pts).float().cpu())
     if sigma:
         return 0.5 * float(torch.cat(sigma).median())

@@ -12,6 +12,7 @@ from core.select.cleanup3d import FOOTPRINT_VOXELS, backproject
 
 MIN_OPACITY = 0.5  # a pixel whose render is less opaque shows no surface to place
 MAX_CELLS = 96  # region voxels per axis at most (the vote needs several pixels per voxel)
+REGION_VIEWS = 16  # training views that place the selection (evenly spread; each costs a render)
 
 
 def saved_masks(source, masks=None) -> list[np.ndarray]:
@@ -84,19 +85,16 @@ def selection_region(source, masks: list[np.ndarray], lo: np.ndarray, hi: np.nda
     units, at least the pixels' footprint) is how far from a view's rendered depth a point still counts as seen."""
     from scipy import ndimage
 
-    from core.render.renderer import render_camera
-
     cams = source.scene.field_cameras("train")
     if len(masks) != len(cams):
         raise UserError(f"the saved selection has {len(masks)} masks but the scene {len(cams)} training views",
                         getattr(source.workspace, "root", None), hint="select again in this workspace")
-    opts = source.render_options(("depth", "opacity"))
+    views = source.train_views(REGION_VIEWS)
     inside, outside, footprint, depths = [], [], [], []
-    dev_cams = cams.to(source.device)
-    for i, m in enumerate(masks):
-        checkpoint(cancel, progress, span[0] + (span[1] - span[0]) * i / len(masks), "placing the selection in 3D")
-        out = render_camera(source.field, source.grid, dev_cams, i, opts)
-        depth, opacity = out["depth"].float().cpu(), out["opacity"].float().cpu()
+    for k, i in enumerate(views):
+        checkpoint(cancel, progress, span[0] + (span[1] - span[0]) * k / len(views), "placing the selection in 3D")
+        depth, opacity = source.depth_opacity(i)
+        m = masks[i]
         if tuple(m.shape) != tuple(depth.shape):
             raise UserError(f"mask {i} is {m.shape[1]}x{m.shape[0]} px but view {i} is {depth.shape[1]}x{depth.shape[0]}",
                             getattr(source.workspace, "root", None), hint="select again in this workspace")
@@ -124,5 +122,5 @@ def selection_region(source, masks: list[np.ndarray], lo: np.ndarray, hi: np.nda
 
     won = votes(pin) > votes(torch.cat(outside))
     voxels = ndimage.binary_dilation(ndimage.binary_fill_holes(won), iterations=1)
-    return SelectionRegion(voxels, voxel, lo, cams, depths, [torch.as_tensor(m) for m in masks],
+    return SelectionRegion(voxels, voxel, lo, cams[views], depths, [torch.as_tensor(masks[i]) for i in views],
                            max(tolerance, 2.0 * pixel))

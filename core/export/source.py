@@ -2,8 +2,10 @@
 workspace (saved masks), taken from a workspace's current version (command line) or from the live engine (editor)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field as dc_field
 from pathlib import Path
+
+import numpy as np
 
 import torch
 
@@ -19,6 +21,7 @@ class ExportSource:
     scene: object  # core.scene.scene.Scene
     workspace: object = None  # core.workspace.workspace.Workspace, for the saved selection masks
     max_samples: int = 1024  # the renderer's steps across the cube, as the field was trained
+    _maps: dict = dc_field(default_factory=dict, repr=False)  # view -> (z-depth, opacity), rendered once
 
     @property
     def device(self) -> torch.device:
@@ -33,6 +36,23 @@ class ExportSource:
 
         bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=self.device)
         return RenderOptions(outputs=outputs, background=bg, perturb=False, max_samples=self.max_samples)
+
+
+    def train_views(self, at_most: int) -> list[int]:
+        """Up to `at_most` training views spread evenly over the capture (renders cost seconds each on a CPU)."""
+        n = len(self.scene.train) if "train" in self.scene.splits else 0
+        return sorted({int(i) for i in np.linspace(0, n - 1, min(at_most, n)).round()}) if n else []
+
+    @torch.no_grad()
+    def depth_opacity(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rendered z-depth and opacity (H, W) of a training view, on the CPU; cached for this export."""
+        if view not in self._maps:
+            from core.render.renderer import render_camera
+
+            cams = self.scene.field_cameras("train").to(self.device)
+            out = render_camera(self.field, self.grid, cams, int(view), self.render_options(("depth", "opacity")))
+            self._maps[view] = (out["depth"].float().cpu(), out["opacity"].float().cpu())
+        return self._maps[view]
 
 
 def open_workspace(path: str | Path, device: str | None = None) -> ExportSource:
