@@ -62,7 +62,7 @@ def test_sphere_mesh_in_world_units_with_field_colours(tmp_path, suffix):
     ref = src.field.color(torch.as_tensor(NORM.to_field(mesh.vertices), dtype=torch.float32)).detach().numpy()
     got = mesh.visual.vertex_colors[:, :3] / 255.0
     assert np.median(np.abs(got - ref)) < 0.02 and np.abs(got - ref).max() < 0.1
-    assert not (tmp_path.glob(".*.tmp") and list(tmp_path.glob(".*.tmp")))
+    assert not list(tmp_path.glob(".*.tmp")) and (tmp_path / f"ball{suffix}").stat().st_mode & 0o777 == 0o644
 
 
 def test_normals_point_out_and_bbox_cuts_in_world_units(tmp_path):
@@ -167,6 +167,7 @@ def test_dataset_round_trip_through_our_loader(ball_scene, tmp_path):
 
     src, masks = ball_scene
     info = export_dataset(src, tmp_path / "edited", masks=masks)
+    assert (tmp_path / "edited").stat().st_mode & 0o777 == 0o755
     meta = json.loads((tmp_path / "edited" / "transforms.json").read_text())
     assert info["frames"] == 6 and meta["w"] == meta["h"] == 16 and "fl_x" in meta
     assert all("mask_path" in f for f in meta["frames"])

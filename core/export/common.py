@@ -13,6 +13,7 @@ from core.workspace.atomic import atomic_path
 # progress(fraction in [0, 1], what is being done); cancel() -> True stops the export between work items.
 Progress = Callable[[float, str], None]
 Cancel = Callable[[], bool]
+EXPORT_FILE_MODE, EXPORT_DIR_MODE = 0o644, 0o755  # like files a user saves (temp files start private)
 
 
 class ExportCancelled(UserError):
@@ -52,6 +53,7 @@ def atomic_output(path: Path, what: str) -> Iterator[Path]:
     try:
         with atomic_path(path) as tmp:
             yield tmp
+            os.chmod(tmp, EXPORT_FILE_MODE)  # the temp file is private (mkstemp); an export is for sharing
     except OSError as exc:
         raise UserError(f"cannot write the {what} ({exc.strerror or exc})", path,
                         hint="choose a folder you can write to, with free space") from None

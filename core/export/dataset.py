@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from core.errors import UserError
-from core.export.common import Cancel, Progress, check_output_dir, checkpoint
+from core.export.common import EXPORT_DIR_MODE, Cancel, Progress, check_output_dir, checkpoint
 from core.export.region import saved_masks
 from core.scene.normalize import MARGIN
 
@@ -40,6 +40,7 @@ def _atomic_folder(out: Path):
         _check_target(out)
         if out.exists():
             out.rmdir()
+        tmp.chmod(EXPORT_DIR_MODE)  # mkdtemp made it private
         tmp.rename(out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
