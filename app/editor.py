@@ -154,7 +154,8 @@ class EditorApp:
         """A video along the recorded camera path (two or more key views), else the turntable."""
         if self.camera is None:
             return
-        cams = self._path_cameras() if len(self.state.path_keys) >= 2 else self._orbit_cameras(int(self.state.path_frames))
+        keys = len(self.state.path_keys)
+        cams = self._path_cameras() if keys >= 2 else self._orbit_cameras(int(self.state.path_frames))
         self.start_export("turntable", cams, path)
 
     def add_path_key(self) -> None:

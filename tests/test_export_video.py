@@ -75,7 +75,8 @@ def test_camera_path_json_round_trip_and_cameras(tmp_path):
     c2w, f = interpolate(keys, fov, frames=9)
     save_camera_path(CameraPath(c2w, f, 64, 48, fps=24), tmp_path / "camera_path.json")
     meta = json.loads((tmp_path / "camera_path.json").read_text())
-    assert meta["render_width"] == 64 and len(meta["camera_path"]) == 9 and len(meta["camera_path"][0]["camera_to_world"]) == 16
+    assert meta["render_width"] == 64 and len(meta["camera_path"]) == 9
+    assert len(meta["camera_path"][0]["camera_to_world"]) == 16
     path = load_camera_path(tmp_path / "camera_path.json")
     assert np.allclose(path.c2w, c2w) and np.allclose(path.fov, f) and path.fps == 24
     norm = Normalization(np.array([1.0, 0.0, 0.0]), 0.25)
@@ -84,7 +85,8 @@ def test_camera_path_json_round_trip_and_cameras(tmp_path):
     uv, z = cams.project(torch.as_tensor(norm.to_field(np.zeros((1, 3))), dtype=torch.float32), 0)
     assert torch.allclose(uv, torch.tensor([[32.0, 24.0]]), atol=1e-3)
     assert float(cams.fy[0]) == pytest.approx(24 / np.tan(np.radians(fov[0]) / 2))
-    (tmp_path / "bad.json").write_text(json.dumps({"camera_path": [{"fov": 40}], "render_width": 4, "render_height": 4}))
+    bad = {"camera_path": [{"fov": 40}], "render_width": 4, "render_height": 4}
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
     with pytest.raises(UserError, match="frame 0 needs"):
         load_camera_path(tmp_path / "bad.json")
     with pytest.raises(UserError, match="no such camera path"):

@@ -105,7 +105,8 @@ def load_camera_path(file: str | Path) -> CameraPath:
     try:
         meta = json.loads(file.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise UserError(f"cannot read this camera path ({exc})", file, hint="give a nerfstudio camera_path.json") from None
+        raise UserError(f"cannot read this camera path ({exc})", file,
+                        hint="give a nerfstudio camera_path.json") from None
     frames = meta.get("camera_path") if isinstance(meta, dict) else None
     if not isinstance(frames, list) or not frames:
         raise UserError("the file has no 'camera_path' list of frames", file, hint="give a nerfstudio camera_path.json")

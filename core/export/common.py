@@ -28,7 +28,8 @@ def check_output_file(path: str | Path, suffixes: tuple[str, ...], what: str) ->
         raise UserError(f"cannot tell which {what} format to write from the name", path,
                         hint=f"end the file name in one of: {', '.join(suffixes)}")
     if path.is_dir():
-        raise UserError(f"this is a folder, not a {what} file name", path, hint=f"add a file name ending in {suffixes[0]}")
+        raise UserError(f"this is a folder, not a {what} file name", path,
+                        hint=f"add a file name ending in {suffixes[0]}")
     check_output_dir(path.parent, what)
     return path
 

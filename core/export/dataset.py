@@ -2,8 +2,9 @@
 (images/frame_00001.png ...), with `transforms.json` in the nerfstudio / instant-ngp layout: OpenGL camera-to-world
 `transform_matrix` in the scene's world units, `fl_x`/`fl_y`/`cx`/`cy`/`w`/`h`, and the selection's masks as a
 per-frame `mask_path` (masks/frame_00001.png, 255 = selected; nerfstudio trains on the masked pixels only, so a
-dataset with masks trains the selected object). Scenes with transparent images get RGBA renders (alpha = opacity)
-and their background colour; `aabb` is the field's box in world units, so our own loader normalises it as before.
+dataset with masks trains the selected object). Scenes with transparent images get RGBA renders (alpha = opacity),
+and their background colour when the scene names one; `aabb` is the field's box in world units, so our own loader
+normalises it as before.
 The folder is written beside its final name and renamed when complete."""
 from __future__ import annotations
 
@@ -85,7 +86,8 @@ def export_dataset(source, out: str | Path, masks: bool | list = True, cancel: C
         except UserError:
             if masks is not True:  # masks the caller gave must be usable
                 raise
-    transparent = source.scene.background is not None
+    # RGBA when the photos had alpha or the scene names a background to composite on
+    transparent = source.scene.background is not None or np.asarray(split.images[0]).shape[-1] == 4
     bg = np.asarray(source.background(), np.float32)
     opts = source.render_options(("rgb", "opacity"))  # black background: un-composited colour + opacity
     dev_cams = field_cams.to(source.device)
@@ -118,7 +120,7 @@ def export_dataset(source, out: str | Path, masks: bool | list = True, cancel: C
                 del f[k]
         if source.scene.kind == "bounded":
             meta["aabb"] = field_aabb(source)
-        if transparent:
+        if source.scene.background is not None:
             meta["background"] = [float(c) for c in bg]
         meta["train_filenames"] = [f["file_path"] for f in frames]
         meta["frames"] = frames

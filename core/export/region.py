@@ -26,7 +26,8 @@ def saved_masks(source, masks=None) -> list[np.ndarray]:
             masks = load_masks(source.workspace.masks_dir)
         except WorkspaceError:
             raise UserError("nothing is selected in this workspace", source.workspace.root,
-                            hint="select an object first: repaint-nerf select WS --view I --patch x0,y0,x1,y1") from None
+                            hint="select an object first: repaint-nerf select WS --view I --patch X0,Y0,X1,Y1"
+                            ) from None
     masks = [np.asarray(m).astype(bool) for m in masks]
     if not masks or not any(m.any() for m in masks):
         raise UserError("the selection is empty: no pixel of any view is selected",
@@ -96,7 +97,8 @@ def selection_region(source, masks: list[np.ndarray], lo: np.ndarray, hi: np.nda
         depth, opacity = source.depth_opacity(i)
         m = masks[i]
         if tuple(m.shape) != tuple(depth.shape):
-            raise UserError(f"mask {i} is {m.shape[1]}x{m.shape[0]} px but view {i} is {depth.shape[1]}x{depth.shape[0]}",
+            raise UserError(f"mask {i} is {m.shape[1]}x{m.shape[0]} px but view {i} is "
+                            f"{depth.shape[1]}x{depth.shape[0]}",
                             getattr(source.workspace, "root", None), hint="select again in this workspace")
         surface = opacity > MIN_OPACITY
         depths.append(torch.where(surface, depth, torch.full_like(depth, float("inf"))))
