@@ -49,12 +49,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 @contextlib.contextmanager
 def _bar(label: str):
-    """A tqdm bar driven by an export's progress(fraction, text) callback."""
+    """A tqdm bar driven by an export's progress(fraction, text) callback (none on a pipe: logs stay clean)."""
     from tqdm import tqdm
 
     with tqdm(total=1000, desc=label, unit="‰", bar_format="{desc} {bar} {percentage:3.0f}% {elapsed}<{remaining} "
-              "{postfix}", leave=False) as bar:
+              "{postfix}", leave=False, disable=None) as bar:
         def progress(frac: float, text: str) -> None:
+            if bar.disable:
+                return
             bar.update(int(frac * 1000) - bar.n)
             bar.set_postfix_str(text, refresh=False)
 
