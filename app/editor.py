@@ -19,15 +19,27 @@ from app.camera_control import CameraControl
 from app.panels import repaint as repaint_panel
 from app.panels import scene as scene_panel
 from app.panels import selection as selection_panel
+from app.panels import export as export_panel
 from app.panels import view as view_panel
-from app.state import EditorState
+from app.state import EditorState, ExportJob
 from app.viewport import Viewport
 from app.window import Window
 from app.worker import Crashed, Frame, Reply, Status, Worker
 
 PANEL_WIDTH = 400
 MODEL_CHANGING = {"undo", "redo", "cancel", "load"}
+EXPORTS = {"export_mesh", "export_points", "export_dataset", "export_turntable", "export_camera_path"}
 STALE_REDRAW_S = 0.1  # while a moved camera's view renders, the unchanged screen is redrawn at this period
+
+
+def export_message(value: Any) -> str:
+    """'wrote PATH (facts)' for an export's reply (a path, or the dict core.export returns)."""
+    if not isinstance(value, dict):
+        return f"wrote {value}"
+    facts = [f"{value[k]} {k}" for k in ("vertices", "faces", "points", "frames") if k in value]
+    if "bytes" in value:
+        facts.append(f"{value['bytes'] / 1e6:.2f} MB")
+    return f"wrote {value['path']}" + (f" ({', '.join(facts)})" if facts else "")
 
 
 class EditorApp:
@@ -97,16 +109,64 @@ class EditorApp:
         if self.camera is not None:
             self.call("export_png", self.camera.cameras(*self.view_size), path)
 
-    def export_turntable(self, path: str, frames: int = 48) -> None:
-        if self.camera is None:
+    def start_export(self, kind: str, *args: Any, **kwargs: Any) -> None:
+        """Run `engine.export_<kind>` on the worker with a progress bar and Cancel (one export at a time)."""
+        if self.state.export_job is not None:
+            self.state.say("an export is running; wait for it or cancel it", "error")
             return
-        cam = CameraControl(**{k: getattr(self.camera, k) for k in ("target", "distance", "yaw", "pitch", "fov_y", "up")})
+        target = str(args[-1] if kind == "turntable" else args[0])
+        job = self.state.export_job = ExportJob(kind, target)
+        self.call(f"export_{kind}", *args, cancel=job.cancelled, progress=job.report, **kwargs)
+
+    def _video_size(self) -> tuple[int, int]:
+        """Video frames: the viewport's aspect at most `state.video_height` pixels high, even sizes (H.264 4:2:0)."""
         w, h = self.view_size
+        k = min(1.0, self.state.video_height / max(h, 1))
+        return max(2, int(w * k) // 2 * 2), max(2, int(h * k) // 2 * 2)
+
+    def _orbit_cameras(self, frames: int) -> list:
+        cam = CameraControl(**{k: getattr(self.camera, k) for k in ("target", "distance", "yaw", "pitch", "fov_y", "up")})
+        w, h = self._video_size()
         cams = []
         for _ in range(frames):
             cams.append(cam.cameras(w, h))
             cam.yaw += 2 * math.pi / frames
-        self.call("export_turntable", cams, path)
+        return cams
+
+    def _path_cameras(self) -> list:
+        from core.export.camera_path import CameraPath, interpolate
+        from core.scene.scene import Normalization
+
+        c2w, fov = interpolate([k[0] for k in self.state.path_keys], [k[1] for k in self.state.path_keys],
+                               int(self.state.path_frames))
+        cams = CameraPath(c2w, fov, *self._video_size()).cameras(Normalization())  # field space stays field space
+        return [cams[i:i + 1] for i in range(len(cams))]
+
+    def export_turntable(self, path: str, frames: int = 48) -> None:
+        if self.camera is not None:
+            self.start_export("turntable", self._orbit_cameras(frames), path)  # the Scene panel's button
+
+    def export_video(self, path: str) -> None:
+        """A video along the recorded camera path (two or more key views), else the turntable."""
+        if self.camera is None:
+            return
+        keys = len(self.state.path_keys)
+        cams = self._path_cameras() if keys >= 2 else self._orbit_cameras(int(self.state.path_frames))
+        self.start_export("turntable", cams, path)
+
+    def add_path_key(self) -> None:
+        """Record the current view as a key view of the camera path."""
+        if self.camera is not None:
+            c2w = self.camera.cameras(*self.view_size).c2w[0].double().numpy()
+            self.state.path_keys.append((c2w, float(self.camera.fov_y)))
+
+    def save_camera_path(self, path: str) -> None:
+        if len(self.state.path_keys) < 2:
+            self.state.say("add at least two key views (Add key view) before saving a path", "error")
+            return
+        keys = self.state.path_keys
+        self.call("export_camera_path", [k[0] for k in keys], [k[1] for k in keys], path,
+                  int(self.state.path_frames), *self._video_size())
 
     # ---- messages from the worker
     def _handle(self, msg: Any) -> None:
@@ -126,6 +186,8 @@ class EditorApp:
                 self.worker.refresh()  # show the finished edit sharp
         elif isinstance(msg, Reply):
             self.events.append((time.perf_counter(), f"reply:{msg.name}", msg))
+            if msg.name in EXPORTS:
+                s.export_job = None
             if msg.error is not None:
                 s.say(f"{msg.name}: {msg.error}", "error")
                 if msg.name == "load":
@@ -154,8 +216,8 @@ class EditorApp:
                 s.repaint_running = True
                 s.training = True
                 self.worker.set_training(True)
-            elif msg.name in ("export_png", "export_turntable", "save"):
-                s.say(f"wrote {msg.value}")
+            elif msg.name in EXPORTS or msg.name in ("export_png", "save"):
+                s.say(export_message(msg.value))
             elif msg.name in ("undo", "redo") and not msg.value:
                 s.say(f"nothing to {msg.name}")
             if msg.name in MODEL_CHANGING:
@@ -272,7 +334,7 @@ class EditorApp:
             imgui.separator()
         # Fields leave room for their labels on the right at any panel width (imgui's default is a fixed share).
         imgui.push_item_width(-min(9.0 * imgui.get_font_size(), 0.4 * width))
-        for panel in (scene_panel, view_panel, selection_panel, repaint_panel):
+        for panel in (scene_panel, view_panel, selection_panel, repaint_panel, export_panel):
             try:
                 panel.draw(self)
             except Exception:  # a bug in one panel must not take the editor down

@@ -25,6 +25,21 @@ class TrainingHistory:
                 del lst[:2500:2]
 
 
+class ExportJob:
+    """A running export: the worker thread reports progress into it and polls `cancel`; the UI draws it."""
+
+    def __init__(self, kind: str, target: str):
+        self.kind, self.target = kind, target
+        self.fraction, self.text = 0.0, "starting"
+        self.cancel = False
+
+    def report(self, fraction: float, text: str) -> None:  # called on the worker thread
+        self.fraction, self.text = float(fraction), str(text)
+
+    def cancelled(self) -> bool:
+        return self.cancel
+
+
 @dataclass
 class EditorState:
     """Everything the panels read and write; the editor turns changes into worker calls."""
@@ -52,6 +67,17 @@ class EditorState:
     history: TrainingHistory = field(default_factory=TrainingHistory)
     export_path: str = "render.png"
     video_path: str = "turntable.mp4"
+    mesh_path: str = "export/mesh.glb"
+    points_path: str = "export/points.ply"
+    dataset_path: str = "export/dataset"
+    camera_path_file: str = "export/camera_path.json"
+    export_selection: bool = False  # mesh / points of the selection only
+    mesh_resolution: int = 192
+    path_keys: list = field(default_factory=list)  # recorded key views: (field-space c2w 4x4, vertical fov deg)
+    path_frames: int = 96
+    export_video_path: str = "export/video.mp4"
+    video_height: int = 720  # pixels; the width follows the viewport's aspect
+    export_job: ExportJob | None = None
     snap_index: int = 0
     messages: list = field(default_factory=list)  # (kind, text); kind in info / error
     error: str | None = None  # the last worker crash, shown until dismissed

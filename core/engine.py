@@ -491,23 +491,83 @@ class Engine:
             raise UserError("cannot write the image", path, hint="choose a folder you can write to, ending in .png")
         return str(path)
 
-    def export_turntable(self, cameras_list: list, path: str | Path, fps: int = 24) -> str:
-        """Write an MP4 of the given cameras' renders (the editor passes an orbit around the target)."""
-        import cv2
+    def _export_source(self):
+        """The live field for core.export, with the selection's masks (live, else the saved ones)."""
+        from core.export.source import from_engine
 
-        path = Path(path)
+        self._need_scene()
+        return from_engine(self)
+
+    def _exporting(self, fn, *args, **kwargs):
+        was_training = self.field.training
+        self.field.eval()
+        try:
+            with torch.no_grad():
+                return fn(*args, **kwargs)
+        finally:
+            self.field.train(was_training)
+
+    def export_mesh(self, path: str | Path, selection: bool = False, resolution: int = 256,
+                    cancel: Callable[[], bool] | None = None,
+                    progress: Callable[[float, str], None] | None = None) -> dict:
+        """Write a coloured marching-cubes mesh (.ply/.obj/.glb, world units) of the field or the selection."""
+        from core.export.mesh import MeshOptions, export_mesh
+
+        src = self._export_source()
+        return self._exporting(export_mesh, src, path, MeshOptions(resolution=resolution, selection=selection),
+                               masks=self.masks, cancel=cancel, progress=progress)
+
+    def export_points(self, path: str | Path, selection: bool = False, cancel: Callable[[], bool] | None = None,
+                      progress: Callable[[float, str], None] | None = None) -> dict:
+        """Write the coloured surface points of the training views (.ply, world units)."""
+        from core.export.points import export_points
+
+        src = self._export_source()
+        return self._exporting(export_points, src, path, selection, masks=self.masks, cancel=cancel,
+                               progress=progress)
+
+    def export_dataset(self, folder: str | Path, cancel: Callable[[], bool] | None = None,
+                       progress: Callable[[float, str], None] | None = None) -> dict:
+        """Write the current version's renders at the training cameras + transforms.json (nerfstudio layout)."""
+        from core.export.dataset import export_dataset
+
+        src = self._export_source()
+        return self._exporting(export_dataset, src, folder, masks=True if self.masks is None else self.masks,
+                               cancel=cancel, progress=progress)
+
+    def export_camera_path(self, key_c2w: np.ndarray, key_fov, path: str | Path, frames: int, width: int,
+                           height: int, fps: float = 30.0) -> str:
+        """Save key views (field-space camera-to-world, vertical fov in degrees) interpolated into `frames` as a
+        nerfstudio camera_path.json in world units."""
+        from core.export.camera_path import CameraPath, interpolate, save_camera_path
+
+        self._need_scene()
+        c2w, fov = interpolate(key_c2w, key_fov, frames)
+        world = c2w.copy()
+        world[:, :3, 3] = self.scene.norm.to_world(c2w[:, :3, 3])
+        keys = [{"camera_to_world": k.reshape(-1).tolist(), "fov": float(f)}
+                for k, f in zip(self._keys_world(key_c2w), np.asarray(key_fov).reshape(-1))]
+        return str(save_camera_path(CameraPath(world, fov, width, height, fps), path, keys))
+
+    def _keys_world(self, key_c2w) -> np.ndarray:
+        keys = np.array(key_c2w, dtype=np.float64).reshape(-1, 4, 4)
+        keys[:, :3, 3] = self.scene.norm.to_world(keys[:, :3, 3])
+        return keys
+
+    def export_turntable(self, cameras_list: list, path: str | Path, fps: float = 24,
+                         cancel: Callable[[], bool] | None = None,
+                         progress: Callable[[float, str], None] | None = None) -> str:
+        """Write the given cameras' renders as an H.264 .mp4 or a .gif (the editor passes an orbit around the
+        target, or its recorded camera path); frames stream into the encoder, the file appears only when done."""
+        from core.export.common import checkpoint
+        from core.export.video import write_video
+
         if not cameras_list:
             raise UserError("no frames to write", path)
-        if not path.parent.is_dir():
-            raise UserError("cannot write the video: its folder does not exist", path,
-                            hint="choose a writable path ending in .mp4")
-        frames = [(np.clip(self.render(c, outputs=("rgb",), full=True)["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
-                  for c in cameras_list]
-        h, w = frames[0].shape[:2]
-        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        if not writer.isOpened():
-            raise UserError("cannot write the video", path, hint="choose a writable path ending in .mp4")
-        for f in frames:
-            writer.write(f[..., ::-1])
-        writer.release()
-        return str(path)
+
+        def frames():
+            for i, c in enumerate(cameras_list):
+                checkpoint(cancel, progress, i / len(cameras_list), f"rendering frame {i + 1}/{len(cameras_list)}")
+                yield self.render(c, outputs=("rgb",), full=True)["rgb"]
+
+        return write_video(frames(), path, fps)["path"]

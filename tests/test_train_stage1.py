@@ -154,10 +154,13 @@ def test_progress_bar_text():
     bar = ProgressBar(total_steps=100, stream=buf)
     text = bar.format(0, 0.0)
     text = bar.format(50, 10.0, psnr=23.456)
-    assert "50%" in text and "50/100" in text and "ETA 0:10" in text and "23.46 dB" in text and "5.0 it/s" in text
+    assert "50%" in text and "50/100" in text and "ETA 00:10" in text and "23.46 dB" in text and "5.0 it/s" in text
     bar.update(50, 23.4, force=True)
     bar.close(100, 25.0)
-    assert buf.getvalue().strip().splitlines()[-1].startswith("train [" + "#" * 24 + "] 100%")
+    assert buf.getvalue().strip().splitlines()[-1].startswith("train 100%|" + "#" * 24 + "|")
+    timed = ProgressBar(total_seconds=60, stream=io.StringIO())
+    timed.format(0, 0.0)
+    assert " 25%|" in timed.format(30, 15.0) and "ETA 00:45" in timed.format(30, 15.0)
 
 
 # -- the trainer ------------------------------------------------------------------------------------------

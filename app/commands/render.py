@@ -1,5 +1,6 @@
 """`repaint-nerf render WS --split test|train|turntable --out DIR`: PNGs of the workspace's current
-version (optional depth colormaps), and an mp4 for the turntable where OpenCV has an encoder."""
+version (optional depth colormaps); the turntable, or a nerfstudio camera path (`--camera-path FILE`), also as an
+H.264 .mp4 (plays in browsers and chat tools) and, with --gif, a GIF."""
 from __future__ import annotations
 
 import argparse
@@ -16,7 +17,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale", type=float, default=1.0, help="resolution factor of the renders (0.5 = half size)")
     p.add_argument("--depth", action="store_true", help="also write z-depth as a colormap PNG per view")
     p.add_argument("--frames", type=int, default=60, help="turntable frames")
-    p.add_argument("--fps", type=float, default=30.0, help="turntable video frame rate")
+    p.add_argument("--fps", type=float, default=None, help="video frame rate (default 30, or the camera path's)")
+    p.add_argument("--camera-path", default=None, metavar="FILE",
+                   help="render along a nerfstudio camera_path.json (world units) instead of a split")
+    p.add_argument("--gif", action="store_true", help="also write the video as a GIF")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
 
@@ -72,7 +76,15 @@ def run(args: argparse.Namespace) -> int:
 
     import cv2
 
-    if args.split == "turntable":
+    video_name = "turntable" if args.split == "turntable" else None
+    if args.camera_path:
+        from core.export.camera_path import load_camera_path
+
+        path = load_camera_path(args.camera_path)
+        cams, images, video_name = path.cameras(scene.norm), None, "camera_path"
+        args.split = "path"
+        args.fps = args.fps or path.fps
+    elif args.split == "turntable":
         train_cams = scene.field_cameras("train")
         ctl = CameraControl.framing(train_cams)  # orbit the point the training cameras look at
         w0, h0 = int(train_cams.width[0]), int(train_cams.height[0])
@@ -107,15 +119,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"wrote {len(frames)} PNGs to {out_dir}" + (f" (and depth colormaps)" if args.depth else ""))
     if scores:
         print(f"{args.split} PSNR {np.mean(scores):.2f} dB over {len(scores)} views")
-    if args.split == "turntable":
-        h, w = frames[0].shape[:2]
-        video = out_dir / "turntable.mp4"
-        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), args.fps, (w, h))
-        if writer.isOpened():
-            for f in frames:
-                writer.write(f[..., ::-1])
-            writer.release()
-            print(f"wrote {video}")
-        else:
-            print("no mp4 encoder available in OpenCV: wrote PNGs only")
+    if video_name:
+        from core.export.video import write_video
+
+        for suffix in (".mp4", ".gif") if args.gif else (".mp4",):
+            info = write_video(frames, out_dir / f"{video_name}{suffix}", args.fps or 30.0)
+            print(f"wrote {info['path']} ({info['frames']} frames, {info['bytes'] / 1e3:.1f} kB)")
     return 0

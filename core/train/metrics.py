@@ -1,4 +1,5 @@
-"""Image quality metrics on float images in [0, 1]: PSNR and SSIM (Gaussian window, Wang et al. 2004)."""
+"""Image metrics on float images in [0, 1]: PSNR and SSIM (Gaussian window, Wang et al. 2004; equal to scikit-image's
+structural_similarity with gaussian_weights, sigma 1.5, population covariance: tests/test_metrics.py)."""
 from __future__ import annotations
 
 import math

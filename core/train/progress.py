@@ -1,7 +1,8 @@
-"""A terminal progress bar for training: fraction done, steps/s, ETA and the current PSNR.
+"""A terminal progress bar for training on tqdm: fraction done, steps/s, elapsed, ETA and the current PSNR / loss.
 
-Redraws in place on a terminal (at most ~8 times a second); on a pipe it prints a line every few
-seconds instead, so logs stay readable.
+tqdm (maintained, handles terminal widths, in-place redraws and notebooks) formats and draws the bar; on a pipe a
+plain line is printed every few seconds instead, so logs stay readable. Progress runs by steps (`total_steps`) or
+by time (`total_seconds`, then the bar and ETA follow the clock and the step rate is shown beside them).
 """
 from __future__ import annotations
 
@@ -9,10 +10,9 @@ import sys
 import time
 from typing import TextIO
 
+from tqdm import tqdm
 
-def _fmt_time(s: float) -> str:
-    s = max(0, int(round(s)))
-    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+BAR = "{desc} {percentage:3.0f}%|{bar:24}| "
 
 
 class ProgressBar:
@@ -22,11 +22,12 @@ class ProgressBar:
                  stream: TextIO | None = None, width: int = 24, label: str = "train"):
         self.total_steps, self.total_seconds = total_steps, total_seconds
         self.stream = stream or sys.stderr
-        self.width, self.label = width, label
+        self.label = label
         self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
         self.start = time.perf_counter()
         self._last_draw = -1e9
         self._start_step: int | None = None
+        self._bar: tqdm | None = None
         self.last_line = ""
 
     def fraction(self, step: int, elapsed: float) -> float | None:
@@ -38,25 +39,22 @@ class ProgressBar:
         return min(1.0, max(parts)) if parts else None
 
     def format(self, step: int, elapsed: float, psnr: float | None = None, loss: float | None = None) -> str:
-        """The bar's text for the given state (used by `update`; handy in tests)."""
+        """The bar's text for the given state (tqdm's meter; used by `update`, handy in tests)."""
         if self._start_step is None:
             self._start_step = step
         frac = self.fraction(step, elapsed)
         rate = (step - self._start_step) / elapsed if elapsed > 0 else 0.0
-        if frac is None:
-            bar, pct, eta = "", "", ""
-        else:
-            fill = int(round(frac * self.width))
-            bar = "[" + "#" * fill + "." * (self.width - fill) + "] "
-            pct = f"{100 * frac:3.0f}% "
-            eta = f" ETA {_fmt_time(elapsed * (1 - frac) / frac)}" if frac > 0 else " ETA ?"
         total = f"/{self.total_steps}" if self.total_steps else ""
-        text = f"{self.label} {bar}{pct}{step}{total} {rate:.1f} it/s {_fmt_time(elapsed)}{eta}"
+        eta = "?" if not frac else tqdm.format_interval(elapsed * (1 - frac) / frac)
+        post = f"{step}{total} {rate:.1f} it/s {tqdm.format_interval(elapsed)} ETA {eta}"
         if psnr is not None:
-            text += f" psnr {psnr:.2f} dB"
+            post += f" psnr {psnr:.2f} dB"
         if loss is not None:
-            text += f" loss {loss:.4g}"
-        return text
+            post += f" loss {loss:.4g}"
+        if frac is None:
+            return f"{self.label} {post}"
+        return tqdm.format_meter(int(round(1000 * frac)), 1000, elapsed, prefix=self.label, ascii=not self.tty,
+                                 bar_format=BAR + post.replace("{", "{{").replace("}", "}}"))
 
     def update(self, step: int, psnr: float | None = None, loss: float | None = None, force: bool = False) -> None:
         """Redraw if enough time has passed (or `force`)."""
@@ -66,17 +64,19 @@ class ProgressBar:
             return
         self._last_draw = now
         self.last_line = self.format(step, now - self.start, psnr, loss)
-        if self.tty:
-            self.stream.write("\r" + self.last_line.ljust(100)[:160])
+        if self.tty:  # tqdm redraws the line in place, fitted to the terminal
+            if self._bar is None:
+                self._bar = tqdm(file=self.stream, bar_format="{desc}", leave=True, dynamic_ncols=True)
+            self._bar.set_description_str(self.last_line)
         else:
             self.stream.write(self.last_line + "\n")
-        self.stream.flush()
+            self.stream.flush()
 
     def close(self, step: int | None = None, psnr: float | None = None) -> None:
         """Draw the final state and end the line."""
         if step is not None:
             self._last_draw = -1e9
             self.update(step, psnr, force=True)
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None

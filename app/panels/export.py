@@ -1,0 +1,86 @@
+"""Export panel: a mesh or points of the scene or the selection, the edited dataset, a camera path recorded from key
+views and a video along it (the turntable without one). Exports run on the worker with a progress bar and Cancel;
+the message line names where each file went."""
+from __future__ import annotations
+
+from imgui_bundle import imgui
+
+from app.panels.common import remember_item, unavailable
+
+
+def _browse(app, attr: str, folder: bool = False) -> None:
+    """A '...' button opening the system file dialog (portable_file_dialogs); the typed path stays the fallback
+    where no dialog program exists (e.g. under Xvfb)."""
+    imgui.same_line()
+    if imgui.button(f"...##{attr}"):
+        try:
+            from imgui_bundle import portable_file_dialogs as pfd
+
+            current = getattr(app.state, attr)
+            dlg = pfd.select_folder("Export folder", current) if folder else pfd.save_file("Export to", current)
+            app.cache["file_dialog"] = (attr, dlg)
+        except Exception as exc:  # no dialog backend: the text field still works
+            app.state.say(f"no file dialog here ({exc}); type the path")
+    pending = app.cache.get("file_dialog")
+    if pending and pending[0] == attr and pending[1].ready():
+        app.cache.pop("file_dialog")
+        chosen = pending[1].result()
+        if chosen:
+            setattr(app.state, attr, chosen)
+
+
+def _path(app, label: str, attr: str, folder: bool = False) -> None:
+    _, value = imgui.input_text(f"{label}##{attr}", getattr(app.state, attr))
+    setattr(app.state, attr, value)
+    remember_item(app, attr)
+    _browse(app, attr, folder)
+
+
+def _button(app, label: str, name: str) -> bool:
+    pressed = imgui.button(label)
+    remember_item(app, name)
+    return pressed
+
+
+def draw(app) -> None:
+    s = app.state
+    opened = imgui.collapsing_header("Export")
+    remember_item(app, "export_section")
+    if not opened or unavailable(app, "render"):
+        return
+    job = s.export_job
+    if job is not None:
+        imgui.progress_bar(job.fraction, imgui.ImVec2(-1, 0), f"{job.kind}: {job.text}")
+        if _button(app, "Cancel export", "export_cancel"):
+            job.cancel = True
+        imgui.text_wrapped(f"-> {job.target}")
+        return
+    _, s.export_selection = imgui.checkbox("Selection only", s.export_selection)
+    remember_item(app, "export_selection")
+    _, s.mesh_resolution = imgui.slider_int("Resolution##mesh", s.mesh_resolution, 64, 512)
+    _path(app, "Mesh", "mesh_path")
+    if _button(app, "Export mesh", "export_mesh"):
+        app.start_export("mesh", s.mesh_path, selection=s.export_selection, resolution=int(s.mesh_resolution))
+    imgui.same_line()
+    if _button(app, "Export points", "export_points"):
+        app.start_export("points", s.points_path, selection=s.export_selection)
+    _path(app, "Points", "points_path")
+    _path(app, "Dataset", "dataset_path", folder=True)
+    if _button(app, "Export dataset", "export_dataset"):
+        app.start_export("dataset", s.dataset_path)
+    imgui.separator()
+    imgui.text(f"Camera path: {len(s.path_keys)} key views")
+    if _button(app, "Add key view", "path_add"):
+        app.add_path_key()
+    imgui.same_line()
+    if _button(app, "Clear keys", "path_clear"):
+        s.path_keys.clear()
+    _, s.path_frames = imgui.slider_int("Frames##path", s.path_frames, 8, 600)
+    _, s.video_height = imgui.slider_int("Height##video", s.video_height, 64, 2160)
+    _path(app, "Path file", "camera_path_file")
+    if _button(app, "Save path", "path_save"):
+        app.save_camera_path(s.camera_path_file)
+    _path(app, "Video", "export_video_path")
+    label = "Video along path" if len(s.path_keys) >= 2 else "Turntable video"
+    if _button(app, label, "export_video"):
+        app.export_video(s.export_video_path)

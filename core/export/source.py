@@ -1,0 +1,80 @@
+"""What an export reads: a field with its occupancy grid, the scene (cameras, world <-> field transform) and the
+workspace (saved masks), taken from a workspace's current version (command line) or from the live engine (editor)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+
+import numpy as np
+
+import torch
+
+from core.errors import WorkspaceError
+
+
+@dataclass
+class ExportSource:
+    """A field ready to query in field space, and what maps it to the scene's world units."""
+
+    field: torch.nn.Module
+    grid: object  # core.render.occupancy.OccupancyGrid or None
+    scene: object  # core.scene.scene.Scene
+    workspace: object = None  # core.workspace.workspace.Workspace, for the saved selection masks
+    max_samples: int = 1024  # the renderer's steps across the cube, as the field was trained
+    _maps: dict = dc_field(default_factory=dict, repr=False)  # view -> (z-depth, opacity), rendered once
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.field.parameters()).device
+
+    def background(self) -> tuple[float, float, float]:
+        return tuple(self.scene.background or (1.0, 1.0, 1.0))
+
+    def render_options(self, outputs: tuple, background=None):
+        """Deterministic render options at the trained sample budget (background None = black, i.e. none)."""
+        from core.render.renderer import RenderOptions
+
+        bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=self.device)
+        return RenderOptions(outputs=outputs, background=bg, perturb=False, max_samples=self.max_samples)
+
+
+    def train_views(self, at_most: int) -> list[int]:
+        """Up to `at_most` training views spread evenly over the capture (renders cost seconds each on a CPU)."""
+        n = len(self.scene.train) if "train" in self.scene.splits else 0
+        return sorted({int(i) for i in np.linspace(0, n - 1, min(at_most, n)).round()}) if n else []
+
+    @torch.no_grad()
+    def depth_opacity(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rendered z-depth and opacity (H, W) of a training view, on the CPU; cached for this export."""
+        if view not in self._maps:
+            from core.render.renderer import render_camera
+
+            cams = self.scene.field_cameras("train").to(self.device)
+            out = render_camera(self.field, self.grid, cams, int(view), self.render_options(("depth", "opacity")))
+            self._maps[view] = (out["depth"].float().cpu(), out["opacity"].float().cpu())
+        return self._maps[view]
+
+
+def open_workspace(path: str | Path, device: str | None = None) -> ExportSource:
+    """The current version of a trained workspace (else its stage-1 checkpoint) with its scene."""
+    from core.scene.loaders.detect import load_workspace_scene
+    from core.train.checkpoint import Checkpoint
+    from core.train.stage1 import CHECKPOINT_NAME, restore_field
+    from core.workspace.workspace import Workspace
+
+    ws = Workspace.open(path)
+    version = ws.current_version
+    ck_path = ws.version_path(version) if version else ws.checkpoints_dir / CHECKPOINT_NAME
+    if not ck_path.exists():
+        raise WorkspaceError("the workspace has no trained field yet", ws.root,
+                             hint=f"run: repaint-nerf train SCENE --workspace {ws.root}")
+    field, grid, header = restore_field(Checkpoint.load(ck_path), device)
+    scene = load_workspace_scene(ws.settings, header)
+    max_samples = int(header.get("train_config", {}).get("max_samples", 1024))
+    return ExportSource(field, grid, scene, ws, max_samples)
+
+
+def from_engine(engine) -> ExportSource:
+    """The engine's live field (the editor exports what it shows)."""
+    return ExportSource(engine.field, engine.grid, engine.scene, engine.workspace,
+                        int(getattr(engine.trainer.cfg, "max_samples", 1024)))
