@@ -160,3 +160,13 @@ def test_seconds_bounds_the_whole_train_command(scene_factory, tmp_path, capsys)
     assert "--seconds 12" in out and "trained" in out
     assert "PSNR" in out or "skipped the closing evaluation" in err  # a loaded machine may leave no time
     assert took < 12.0 + 5.0, took  # one step and the saves may pass the line; the closing work does not
+
+
+@pytest.mark.parametrize("value", [-1, 4, 2.5, "x"])
+def test_bad_max_size_is_a_user_error(tmp_path, value):
+    from core.errors import UserError
+    from core.scene.loaders.detect import load_scene
+
+    write_blender(tmp_path, {"train": 1})
+    with pytest.raises(UserError, match="--max-size"):
+        load_scene(tmp_path, max_size=value)
