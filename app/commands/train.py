@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the paper trains LLFF at 504x378; 0 = full size)")
     p.add_argument("--full-eval", action="store_true",
                    help="close with an evaluation of every pixel of every test view (default: a bounded one, "
-                        "8 views x 128-px crops, whose cost does not grow with the image size)")
+                        "8 views x 48-px crops, whose cost does not grow with the image size)")
     p.add_argument("--kind", default=None, choices=("bounded", "forward", "unbounded"),
                    help="scene kind (default: the dataset's, else detected from the camera layout)")
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
