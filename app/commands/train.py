@@ -160,9 +160,10 @@ def run(args: argparse.Namespace) -> int:
         stop.set()
 
     bar = ProgressBar(total_steps=args.steps, total_seconds=None if args.steps else train_s)
-    ema = {"psnr": None}
+    ema = {"psnr": None, "dt": 0.0}
 
     def on_step(info):
+        ema["dt"] = info["seconds"]
         p = info["psnr"]
         ema["psnr"] = p if ema["psnr"] is None else 0.9 * ema["psnr"] + 0.1 * p
         bar.update(info["step"], ema["psnr"], info["loss"])
@@ -170,7 +171,10 @@ def run(args: argparse.Namespace) -> int:
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, on_sigint) if in_main else None
     try:
-        trainer.train(steps=args.steps, seconds=train_s, callback=on_step, stop=stop)
+        # under --seconds no step starts that the last one's duration says would end past the allotment
+        trainer.train(steps=args.steps, seconds=train_s, callback=on_step,
+                      stop=lambda: stop.is_set() or (train_s is not None and trainer.step_count > 0
+                                                     and trainer.train_seconds + ema["dt"] > train_s))
     finally:
         if in_main:
             signal.signal(signal.SIGINT, previous)
