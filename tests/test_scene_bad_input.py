@@ -257,13 +257,13 @@ def test_bare_photos_use_the_sfm_hook_when_present(tmp_path, monkeypatch):
     write_blender(other, counts={"train": 2})
     calls = []
 
-    def fake_sfm(root, downscale=1.0):
-        calls.append((root, downscale))
-        return detect.load_blender(other, downscale=downscale)
+    def fake_sfm(root, downscale=1.0, max_size=0):
+        calls.append((root, downscale, max_size))
+        return detect.load_blender(other, downscale=downscale, max_size=max_size)
 
     monkeypatch.setattr(detect, "_sfm_hook", lambda: fake_sfm)
-    scene = load_scene(tmp_path, downscale=2)
-    assert calls == [(tmp_path, 2.0)] and len(scene.train) == 2 and scene.norm.scale > 0
+    scene = load_scene(tmp_path, downscale=2, max_size=300)
+    assert calls == [(tmp_path, 2.0, 300)] and len(scene.train) == 2 and scene.norm.scale > 0
 
 
 @pytest.mark.parametrize("value", [0, -1, float("nan"), "x"])

@@ -1,6 +1,7 @@
 """`repaint-nerf sfm PHOTOS_DIR --workspace WS [--json OUT.json]`: structure-from-motion on a photo folder.
 
-Prints each phase with its time, the photos that could not be registered, and writes the report as JSON;
+Prints each phase with its time, the model check's verdict (an implausible model is an error with its
+reasons, never "registered"), the photos that could not be registered, and writes the report as JSON;
 the workspace then trains like any other scene (`repaint-nerf train PHOTOS_DIR --workspace WS`).
 """
 from __future__ import annotations
@@ -24,6 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from core.sfm.judge import Verdict
     from core.sfm.run import sfm_scene
     from core.workspace import atomic
 
@@ -40,6 +42,7 @@ def run(args: argparse.Namespace) -> int:
     rep["kind_reason"] = scene.extra.get("kind_reason", "given")
     for note in rep.get("notes", []):
         print(f"note: {note}", file=sys.stderr)
+    print(f"model check: {Verdict.from_dict(rep.get('verdict') or {}).summary()}")
     secs = ", ".join(f"{k} {v:.1f} s" for k, v in rep["seconds"].items())
     print(f"registered {rep['registered']} of {rep['total']} photos; {rep['points']} points; "
           f"scene kind {scene.kind}" + (f"; {secs}" if secs else "") + (" (cached)" if rep.get("cached") else ""))

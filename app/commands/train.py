@@ -18,8 +18,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--steps", type=int, default=None, help="total training steps (a resumed run finishes them)")
     budget.add_argument("--seconds", type=float, default=None,
-                        help="total training seconds (default 120 when neither is given)")
+                        help="seconds the whole command may take: loading, training, saving and the closing "
+                             "evaluation (default 120 when neither is given); what does not fit is skipped and said")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (2 halves the size)")
+    p.add_argument("--max-size", type=int, default=None, metavar="PX",
+                   help="longest image side trained on: larger photos are loaded smaller (default 512; "
+                        "the paper trains LLFF at 504x378; 0 = full size)")
+    p.add_argument("--full-eval", action="store_true",
+                   help="close with an evaluation of every pixel of every test view (default: a bounded one, "
+                        "8 views x 48-px crops, whose cost does not grow with the image size)")
     p.add_argument("--kind", default=None, choices=("bounded", "forward", "unbounded"),
                    help="scene kind (default: the dataset's, else detected from the camera layout)")
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
@@ -94,7 +101,9 @@ def check_model_flags(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from core.errors import SceneError, WorkspaceError
+    from core.scene.loaders.common import DEFAULT_MAX_SIZE, check_max_size
     from core.scene.loaders.detect import load_scene
+    from core.train.budget import CommandBudget
     from core.train.progress import ProgressBar
     from core.train.stage1 import Stage1Trainer, TrainConfig
     from core.workspace.workspace import Workspace
@@ -105,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
     for name in ("--steps", "--seconds", "--rays", "--lr", "--max-samples"):
         _positive(name, getattr(args, name[2:].replace("-", "_")))
     seconds = args.seconds if args.seconds is not None or args.steps is not None else 120.0
+    budget = CommandBudget(None if args.steps else seconds)
+    max_size = check_max_size(DEFAULT_MAX_SIZE if args.max_size is None else args.max_size)
     feature_size = parse_size(args.feature_size)
     check_model_flags(args)
 
@@ -114,9 +125,9 @@ def run(args: argparse.Namespace) -> int:
     if old and old != scene_key and ws.original_version is not None:
         raise WorkspaceError(f"this workspace holds a reconstruction of another scene ({old})", ws.root,
                              hint="pass a new folder to --workspace")
-    ws.update_settings(scene=scene_key, downscale=args.downscale, kind=args.kind)
+    ws.update_settings(scene=scene_key, downscale=args.downscale, kind=args.kind, max_size=max_size)
 
-    scene = load_scene(scene_path, args.downscale, kind=args.kind, workspace=args.workspace)  # SfM of a photo folder is cached there
+    scene = load_scene(scene_path, args.downscale, kind=args.kind, workspace=args.workspace, max_size=max_size)  # SfM of a photo folder is cached there
     cfg = TrainConfig(seed=args.seed, checkpoint_every_s=args.checkpoint_every)
     if args.rays:
         cfg.rays_per_batch = args.rays
@@ -138,10 +149,16 @@ def run(args: argparse.Namespace) -> int:
             print(f"resumed at step {trainer.step_count} ({trainer.train_seconds:.0f} s trained)")
         else:
             print("no checkpoint to resume from; starting from scratch")
-    trainer.plan(args.steps, None if args.steps else seconds)
+    train_s = budget.training_seconds()  # what loading left, less the closing reserve
+    if train_s is not None:
+        train_s = trainer.train_seconds + max(train_s, 1e-3)  # a total: a resumed run counts its past seconds
+    trainer.plan(args.steps, train_s)
     n_img = len(scene.train)
     h, w = scene.train.images[0].shape[:2]
     print(f"scene {scene_path} ({scene.format}): {n_img} training images {w}x{h}; device {trainer.device}")
+    if budget.bounded:
+        print(f"--seconds {seconds:g}: {budget.elapsed():.1f} s loading, {train_s - trainer.train_seconds:.1f} s "
+              f"training, the rest saving and evaluating")
 
     stop = threading.Event()
     interrupted = {"n": 0}
@@ -152,10 +169,11 @@ def run(args: argparse.Namespace) -> int:
             raise KeyboardInterrupt
         stop.set()
 
-    bar = ProgressBar(total_steps=args.steps, total_seconds=None if args.steps else seconds)
-    ema = {"psnr": None}
+    bar = ProgressBar(total_steps=args.steps, total_seconds=None if args.steps else train_s)
+    ema = {"psnr": None, "dt": 0.0}
 
     def on_step(info):
+        ema["dt"] = info["seconds"]
         p = info["psnr"]
         ema["psnr"] = p if ema["psnr"] is None else 0.9 * ema["psnr"] + 0.1 * p
         bar.update(info["step"], ema["psnr"], info["loss"])
@@ -163,7 +181,10 @@ def run(args: argparse.Namespace) -> int:
     in_main = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGINT, on_sigint) if in_main else None
     try:
-        trainer.train(steps=args.steps, seconds=None if args.steps else seconds, callback=on_step, stop=stop)
+        # under --seconds no step starts that the last one's duration says would end past the allotment
+        trainer.train(steps=args.steps, seconds=train_s, callback=on_step,
+                      stop=lambda: stop.is_set() or (train_s is not None and trainer.step_count > 0
+                                                     and trainer.train_seconds + ema["dt"] > train_s))
     finally:
         if in_main:
             signal.signal(signal.SIGINT, previous)
@@ -174,8 +195,36 @@ def run(args: argparse.Namespace) -> int:
               f"continue with: repaint-nerf train {args.scene} --workspace {args.workspace} --resume", file=sys.stderr)
         return 130
     version = trainer.save_version("reconstruction")
-    ev = trainer.evaluate(with_ssim=True)
     print(f"trained {trainer.step_count} steps in {trainer.train_seconds:.1f} s "
           f"({trainer.step_count / max(trainer.train_seconds, 1e-9):.1f} steps/s); saved version {version.id}")
-    print(f"{ev['split']} PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f} over {ev['views']} views")
+    closing_evaluation(trainer, budget, args.full_eval)
     return 0
+
+
+def closing_evaluation(trainer, budget, full: bool) -> dict | None:
+    """The closing test evaluation within the command's budget: bounded by default; the full one when asked
+    and when its estimate (from the bounded one's seconds per pixel) fits. Prints what it did or skipped."""
+    if budget.left() <= 0:
+        print(budget.skip("the closing evaluation"), file=sys.stderr)
+        return None
+    ev = trainer.evaluate(with_ssim=True, deadline=budget.deadline())
+    _print_eval(ev)
+    if full:
+        cams = trainer.scene.field_cameras(ev["split"])
+        total_px = float((cams.width * cams.height).sum())
+        estimate = ev["seconds"] / max(1, ev["pixels"]) * total_px * 2.0  # no sample cap there: say twice
+        if budget.fits(estimate):
+            ev = trainer.evaluate(with_ssim=True, full=True, deadline=budget.deadline())
+            _print_eval(ev)
+        else:
+            print(budget.skip(f"the full evaluation (about {estimate:.0f} s for {ev['views_total']} views)"),
+                  file=sys.stderr)
+    if ev["skipped_views"]:
+        print(budget.skip(f"{ev['skipped_views']} of the evaluation's views"), file=sys.stderr)
+    return ev
+
+
+def _print_eval(ev: dict) -> None:
+    what = (f"all pixels of {ev['views']} of {ev['views_total']} views" if ev["full"] else
+            f"{ev['views']} of {ev['views_total']} views, {ev['pixels']} pixels in crops (--full-eval for all)")
+    print(f"{ev['split']} PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f} over {what}; {ev['seconds']:.1f} s")

@@ -45,6 +45,10 @@ class RenderOptions:
     seg_steps: int = 16  # steps per coarse skipping segment
     seg_window: int = 8  # segments a ray looks ahead per marching round
     profile: bool = False  # per-stage seconds in stats['time'] (synchronises the device)
+    # inference only: the most field samples a ray evaluates, whatever the resolution (0 = no cap). A foggy
+    # (e.g. untrained) field never reaches t_threshold, so without it every ray marches to the far bound;
+    # what a capped ray has not met by then counts as background
+    sample_cap: int = 0
 
 
 @dataclass
@@ -82,6 +86,8 @@ def _check(opts: RenderOptions) -> None:
         raise UserError(f"unknown render output(s) {bad}; choose from {list(OUTPUTS)}")
     if opts.strategy not in STRATEGIES:
         raise UserError(f"unknown render strategy '{opts.strategy}'; choose from {list(STRATEGIES)}")
+    if opts.sample_cap < 0:
+        raise UserError(f"sample_cap must be >= 0 (0 = no cap), got {opts.sample_cap}")
     if opts.max_samples < 1 or opts.seg_steps < 1 or opts.seg_window < 1 or opts.chunk < opts.seg_steps:
         raise UserError(f"render options need max_samples, seg_steps, seg_window >= 1 and chunk >= seg_steps "
                         f"(got {opts.max_samples}, {opts.seg_steps}, {opts.seg_window}, {opts.chunk})")
@@ -141,6 +147,8 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
     totals: dict[str, Tensor] = {}
     kept: list[Samples] = []
     rounds = 0
+    cap = opts.sample_cap if opts.sample_cap > 0 and not collect else math.inf
+    taken = 0  # samples (native) or steps (segments) every live ray has had at most so far
     while True:
         if cancel is not None and cancel():
             return None
@@ -151,11 +159,15 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             # work per ray grows each round (rays still alive late are mostly transparent), capped by the
             # look-ahead window and the memory budget
             if native:  # occupied samples per ray: 4, 8, 16, ...
-                take = max(1, min(k * opts.seg_window, NATIVE_FIRST_ROUND << rounds, opts.chunk // ids.numel()))
+                left = cap - taken if cap < math.inf else k * opts.seg_window
+                take = max(1, min(k * opts.seg_window, NATIVE_FIRST_ROUND << rounds, opts.chunk // ids.numel(), left))
                 s = march_native.march(o, d, plan, grid, ids, cursor, take, opts.perturb)
+                taken += take
             else:  # coarse segments per ray: 1, 2, 4, ...
-                take = max(1, min(opts.seg_window, 1 << rounds, opts.chunk // (ids.numel() * k)))
+                left = (cap - taken + k - 1) // k if cap < math.inf else opts.seg_window
+                take = max(1, min(opts.seg_window, 1 << rounds, opts.chunk // (ids.numel() * k), left))
                 segs = next_segments(o, d, plan, grid, ids, cursor, k, opts.seg_window, take)
+                taken += take * k
                 s = expand_segments(o, d, plan, grid, *segs, opts.perturb)
             rounds += 1
         acc.stats["candidates"] += len(s)
@@ -180,6 +192,8 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
                         totals[name] = totals[name] + v if name in totals else v
                 carry = carry + out["tau"]
         alive = (cursor < end) & (carry < tau_stop)
+        if taken >= cap:
+            break
     return totals, kept
 
 

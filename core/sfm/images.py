@@ -32,10 +32,28 @@ class Intake:
     sizes: dict[str, tuple[int, int]]  # original name -> (width, height) prepared
     notes: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)  # files not used, by name
+    exif_focal: dict[str, float] = field(default_factory=dict)  # prepared name -> EXIF focal length in px
+
 
     def original_of(self) -> dict[str, str]:
         """Prepared file name -> original name."""
         return {v: k for k, v in self.prepared.items()}
+
+
+EXIF_IFD = 0x8769
+FOCAL_35MM = 0xA405  # FocalLengthIn35mmFilm: the focal length a 36 mm-wide frame would need
+
+
+def exif_focal_px(path: Path, long_side: int) -> float | None:
+    """The photo's focal length in pixels of an image `long_side` px long, from its 35 mm-equivalent EXIF tag."""
+    try:
+        from PIL import Image
+
+        with Image.open(path) as im:
+            f35 = float(im.getexif().get_ifd(EXIF_IFD).get(FOCAL_35MM, 0) or 0)
+    except Exception:  # noqa: BLE001 - no readable EXIF simply means no focal prior
+        return None
+    return f35 / 36.0 * long_side if f35 > 0 else None
 
 
 def natural_key(name: str) -> list:
@@ -84,6 +102,7 @@ def prepare_photos(src: Path, out: Path, max_side: int = MAX_SIDE) -> Intake:
         shutil.rmtree(out)
     out.mkdir(parents=True)
     names, prepared, sizes, notes, skipped = [], {}, {}, [], list(other)
+    exif_focal: dict[str, float] = {}
     if other:
         notes.append(f"skipped {len(other)} non-image file(s): {', '.join(other[:5])}"
                      + (" ..." if len(other) > 5 else ""))
@@ -133,6 +152,9 @@ def prepare_photos(src: Path, out: Path, max_side: int = MAX_SIDE) -> Intake:
         names.append(p.name)
         prepared[p.name] = name
         sizes[p.name] = (int(img.shape[1]), int(img.shape[0]))
+        focal = exif_focal_px(p, max(img.shape[:2]))
+        if focal is not None:
+            exif_focal[name] = focal
     labels = {"rotated": "rotated upright from EXIF orientation", "gray": "grayscale converted to RGB",
               "alpha": "with alpha flattened onto white", "downscaled": f"downscaled to at most {max_side} px",
               "converted": "converted to 8-bit PNG"}
@@ -145,7 +167,7 @@ def prepare_photos(src: Path, out: Path, max_side: int = MAX_SIDE) -> Intake:
         raise SceneError(f"structure-from-motion needs at least {MIN_IMAGES} photos; found {len(names)} usable"
                          + (f" ({len(skipped)} skipped: {', '.join(skipped[:5])})" if skipped else ""), src,
                          hint="add overlapping photos of the scene from several viewpoints")
-    return Intake(names, prepared, sizes, notes, skipped)
+    return Intake(names, prepared, sizes, notes, skipped, exif_focal)
 
 
 def fingerprint(src: Path) -> list:

@@ -42,19 +42,23 @@ def choose_matcher(matcher: str, n_images: int) -> str:
     return matcher
 
 
-def extract(db: Path, image_dir: Path, groups: list[list[str]], camera_model: str = "SIMPLE_RADIAL") -> None:
-    """SIFT features of the files in image_dir into the database; one shared camera per group (image size).
+def extract(db: Path, image_dir: Path, groups: list[list[str]], camera_model: str = "SIMPLE_RADIAL",
+            per_image: bool = False) -> None:
+    """SIFT features of the files in image_dir into the database; one shared camera per group (image size),
+    or one camera per photo with `per_image`.
 
     One camera per size (not per image) is what makes small sets register: COLMAP's AUTO mode gives
-    every photo without EXIF focal length its own intrinsics.
+    every photo without EXIF focal length its own intrinsics. A shared camera can also converge to a
+    wrong focal length (core.sfm.judge), which is when the runner retries with `per_image`.
     """
     opts = pycolmap.FeatureExtractionOptions()
     opts.sift.max_num_features = MAX_FEATURES
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
+    mode = pycolmap.CameraMode.PER_IMAGE if per_image else pycolmap.CameraMode.SINGLE
     with quiet_colmap():
         for names in groups:
-            pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+            pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode,
                                       reader_options=reader, extraction_options=opts, device=pycolmap.Device.cpu)
 
 

@@ -20,13 +20,14 @@ from core.errors import SceneError
 from core.scene.loaders.colmap import find_model, load_colmap, read_model
 from core.scene.scene import SCENE_KINDS, Scene
 from core.sfm import images as intake
-from core.sfm import pipeline
+from core.sfm import judge, pipeline
+from core.sfm.judge import Verdict
 from core.workspace import atomic
 
 log = logging.getLogger("repaint_nerf.sfm")
 
-CACHE_VERSION = 1
-PHASES = ("intake", "features", "matching", "mapping", "undistortion")
+CACHE_VERSION = 2  # 2: the report carries the model check's verdict
+PHASES = ("intake", "features", "matching", "mapping", "retry", "undistortion")
 Progress = Callable[[str, float, str], None]  # (phase, fraction of that phase done in [0, 1], message)
 
 
@@ -54,9 +55,11 @@ def cached_report(photos_dir: Path, workspace_dir: Path, matcher: str = "auto",
         report = json.loads((sfm / "report.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    trusted = (report.get("verdict") or {}).get("trusted", False)
     if report.get("options") != _options(matcher, max_side) or \
-            report.get("fingerprint") != intake.fingerprint(photos_dir) or find_model(sfm / "scene") is None:
-        return None
+            report.get("fingerprint") != intake.fingerprint(photos_dir) or \
+            (trusted and find_model(sfm / "scene") is None):
+        return None  # a rejected model has no scene folder: its report alone answers (with the same error)
     return report
 
 
@@ -65,7 +68,9 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
     """Run (or reuse) structure-from-motion; returns the report.
 
     Report: {"total", "registered", "unregistered": [names], "skipped": [names], "notes": [...],
-    "seconds": {phase: s}, "matcher", "cached", "scene_dir", "points"}.
+    "seconds": {phase: s}, "matcher", "cached", "scene_dir", "points", "verdict", "attempts"}.
+    The model is judged (core.sfm.judge); an implausible one is mapped again with one camera per photo
+    and the better kept. A model that stays implausible is a `SceneError` with its reasons (cached too).
     """
     photos_dir = Path(photos_dir)
     workspace_dir = Path(workspace_dir) if workspace_dir is not None else default_workspace(photos_dir)
@@ -76,7 +81,7 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
             report["cached"] = True
             if progress:
                 progress("cached", 1.0, f"reusing structure-from-motion from {workspace_dir}")
-            return report
+            return _trusted_or_raise(report, photos_dir)
     sfm = _sfm_dir(workspace_dir)
     say = progress or (lambda phase, frac, msg: None)
     seconds: dict[str, float] = {}
@@ -92,26 +97,53 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
 
     shutil.rmtree(sfm, ignore_errors=True)
     sfm.mkdir(parents=True)
-    img_dir, db = sfm / "images", sfm / "database.db"
+    img_dir = sfm / "images"
     photos = phase("intake", lambda: intake.prepare_photos(photos_dir, img_dir, max_side), "reading photos")
     n = len(photos.names)
     kind = pipeline.choose_matcher(matcher, n)
     groups: dict[tuple[int, int], list[str]] = {}
     for k in photos.names:
         groups.setdefault(photos.sizes[k], []).append(photos.prepared[k])
-    phase("features", lambda: pipeline.extract(db, img_dir, list(groups.values())),
-          f"extracting features from {n} photos")
-    phase("matching", lambda: pipeline.match(db, kind), f"matching features ({kind})")
 
     def on_image(k: int) -> None:
         say("mapping", min(k / n, 1.0), f"registered {min(k, n)} of {n}")
 
-    rec = phase("mapping", lambda: pipeline.reconstruct(db, img_dir, sfm / "models", n, photos_dir, on_image),
-                "incremental mapping")
+    def attempt(per_image: bool) -> tuple[object, Verdict]:
+        """Features, matching and mapping with shared or per-photo cameras; the model and its verdict."""
+        label = "per-image" if per_image else "shared"
+        db = sfm / f"database-{label}.db"
+        extract = lambda: pipeline.extract(db, img_dir, list(groups.values()), per_image=per_image)  # noqa: E731
+        mapping = lambda: pipeline.reconstruct(db, img_dir, sfm / f"models-{label}", n, photos_dir,  # noqa: E731
+                                               on_image)
+        if per_image:  # timed as one "retry" phase
+            extract()
+            pipeline.match(db, kind)
+            rec = mapping()
+        else:
+            phase("features", extract, f"extracting features from {n} photos")
+            phase("matching", lambda: pipeline.match(db, kind), f"matching features ({kind})")
+            rec = phase("mapping", mapping, "incremental mapping")
+        return rec, judge.judge(judge.facts_of(rec, n, photos.exif_focal), cameras=label)
+
+    rec, verdict = attempt(per_image=False)
+    say("check", 1.0, f"model check: {verdict.summary()}")
+    tried = [verdict]
+    if not verdict.trusted:
+        try:
+            rec2, verdict2 = phase("retry", lambda: attempt(per_image=True),
+                                   "the shared-camera model is implausible: mapping again with one camera per photo")
+        except SceneError as exc:  # no model at all this time: the first one stands
+            say("check", 1.0, f"one camera per photo: {exc}")
+        else:
+            say("check", 1.0, f"model check (one camera per photo): {verdict2.summary()}")
+            tried.append(verdict2)
+            if verdict2.score() > verdict.score():
+                rec, verdict = rec2, verdict2
     model_dir = sfm / "sparse"
     model_dir.mkdir()
     rec.write(str(model_dir))
-    phase("undistortion", lambda: pipeline.undistort(model_dir, img_dir, sfm / "scene"), "undistorting")
+    if verdict.trusted:
+        phase("undistortion", lambda: pipeline.undistort(model_dir, img_dir, sfm / "scene"), "undistorting")
     original = photos.original_of()
     registered = {original.get(im.name, im.name) for im in rec.images.values() if _has_pose(im)}
     unregistered = [k for k in photos.names if k not in registered]
@@ -119,17 +151,32 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
               "skipped": photos.skipped, "notes": photos.notes, "seconds": seconds, "matcher": kind,
               "points": int(rec.num_points3D()), "scene_dir": str(sfm / "scene"), "names": original,
               "options": _options(matcher, max_side), "fingerprint": intake.fingerprint(photos_dir),
-              "cached": False}
-    if unregistered:
+              "verdict": verdict.to_dict(), "attempts": [v.to_dict() for v in tried], "cached": False}
+    if unregistered and verdict.trusted:
         msg = (f"{len(unregistered)} of {n} photos could not be registered and were dropped: "
                f"{', '.join(unregistered[:10])}{' ...' if len(unregistered) > 10 else ''}")
         report["notes"].append(msg)
         log.warning("sfm: %s", msg)
         say("mapping", 1.0, msg)
-    for tmp in (db, sfm / "models"):  # only the final model and images are needed to reopen
-        shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+    for tmp in sfm.glob("database-*"):  # only the final model and images are needed to reopen
+        tmp.unlink(missing_ok=True)
+    for tmp in sfm.glob("models-*"):
+        shutil.rmtree(tmp, ignore_errors=True)
     atomic.write_json(sfm / "report.json", report)
-    return report
+    return _trusted_or_raise(report, photos_dir)
+
+
+def _trusted_or_raise(report: dict, photos_dir: Path) -> dict:
+    """The report when its model passed the check (core.sfm.judge); else a SceneError with the reasons."""
+    verdict = Verdict.from_dict(report.get("verdict") or {"trusted": True})
+    if verdict.trusted:
+        return report
+    tried = " and ".join(a.get("cameras", "shared") for a in report.get("attempts", [])) or verdict.cameras
+    raise SceneError(f"structure-from-motion found no plausible model of these {report['total']} photos "
+                     f"(tried {tried} cameras; {report['registered']} registered): "
+                     + "; ".join(verdict.reasons), photos_dir,
+                     hint="photos taken with one fixed zoom, overlapping by more than half, with textured "
+                          "surfaces in view, register reliably; photos that keep their EXIF focal length help")
 
 
 def _has_pose(im) -> bool:
@@ -152,7 +199,7 @@ def _visibility(model_dir: Path, names: list[str]) -> list[np.ndarray]:
 
 def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, progress: Progress | None = None,
               matcher: str = "auto", downscale: float = 1.0, kind: str | None = None, splits=None,
-              force: bool = False) -> Scene:
+              force: bool = False, max_size: int = 0) -> Scene:
     """A scene from a folder of photos: SfM (cached in `workspace_dir`, default beside the photos).
 
     The scene keeps the SfM points (with per-image visibility of the train split, for sparse depth),
@@ -165,7 +212,7 @@ def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, p
         raise SceneError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
     report = run_sfm(photos_dir, workspace_dir, progress, matcher, force=force)
     scene_dir = Path(report["scene_dir"])
-    scene = load_colmap(scene_dir, downscale=downscale, splits=splits)
+    scene = load_colmap(scene_dir, downscale=downscale, splits=splits, max_size=max_size)
     scene.root = Path(photos_dir)
     scene.format = "photos"
     originals = report.get("names", {})

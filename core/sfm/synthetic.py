@@ -17,12 +17,14 @@ from core.synth.writer import write_png
 
 
 def render_photos(preset: str, out: Path, views: int = 20, width: int = 400, height: int = 300,
-                  seed: int = 0, texture: str | None = "noise", texture_scale: float = 10.0) -> dict:
+                  seed: int = 0, texture: str | None = "noise", texture_scale: float = 10.0,
+                  fov_x: float | None = None) -> dict:
     """Render `views` RGB photos of `preset` into `out`; returns {"names", "c2w" (N,4,4 OpenGL), "fx", "kind"}.
 
     The ring and hemisphere rigs are sorted by azimuth so names follow the capture path. `texture`
     replaces every object's texture (the presets' checkers and stripes repeat, so SIFT's ratio test
     rejects most of their matches; value noise is what real surfaces look like to SIFT); None keeps them.
+    `fov_x` (radians) replaces the preset's horizontal field of view.
     """
     spec = build_spec(preset)
     if texture is not None:
@@ -33,7 +35,7 @@ def render_photos(preset: str, out: Path, views: int = 20, width: int = 400, hei
     if spec.kind != "forward":
         az = np.arctan2(poses[:, 1, 3], poses[:, 0, 3])
         poses = poses[np.argsort(az)]
-    fx = 0.5 * width / np.tan(0.5 * spec.camera_angle_x)
+    fx = 0.5 * width / np.tan(0.5 * (fov_x or spec.camera_angle_x))
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     names = []

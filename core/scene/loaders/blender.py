@@ -20,7 +20,7 @@ def is_blender(root: Path) -> bool:
     """Whether `root` holds at least one `transforms_<split>.json`."""
     return any((root / f"transforms_{s}.json").is_file() for s in SPLITS)
 
-def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+def load_blender(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
     """Load a NeRF-synthetic scene; every split file found becomes a split (train is required)."""
     root = Path(root)
     if not (root / "transforms_train.json").is_file():
@@ -38,7 +38,8 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None) -> Scene:
             kind = parse_kind(meta, path)
             depth_range = parse_depth_range(meta, path)
         if wanted(split, splits):
-            out[split] = load_frames(meta, frames, list(range(len(frames))), root, path, downscale, same_size=True)
+            out[split] = load_frames(meta, frames, list(range(len(frames))), root, path, downscale, same_size=True,
+                                      max_size=max_size)
     extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
     if aabb is not None:
         extra["aabb"] = aabb

@@ -112,8 +112,8 @@ def _image_dir(root: Path, downscale: float) -> Path:
     return root / "images"
 
 
-def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
-    """Load a COLMAP scene folder (with `sparse/0` or `sparse/` and `images/`)."""
+def load_colmap(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
+    """Load a COLMAP scene folder (with `sparse/0` or `sparse/` and `images/`); `max_size` as in load_split."""
     root = Path(root)
     model = find_model(root)
     if model is None:
@@ -164,7 +164,7 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None) -> Scene:
     for name, idx in (("train", tr), ("test", te)):
         if idx and wanted(name, splits):
             out[name] = load_split(cameras[idx], [paths[i] for i in idx], [images[i].name for i in idx], downscale,
-                                   reader=lambda k, p, idx=idx: reader(idx[k], p))
+                                   reader=lambda k, p, idx=idx: reader(idx[k], p), max_size=max_size)
     pts = rec.points3D
     points = np.asarray([pt.xyz for pt in pts.values()], dtype=np.float64).reshape(-1, 3)
     colors = np.asarray([pt.color for pt in pts.values()], dtype=np.uint8).reshape(-1, 3)

@@ -12,6 +12,9 @@ from core.scene.loaders.images import fit_image, read_image
 from core.scene.scene import SceneSplit
 
 TEST_EVERY = 8  # LLFF convention: images 0, 8, 16, ... are the test split
+# longest image side loaded by default: photos are stored and sampled at the training resolution, and the
+# paper trains LLFF at 504x378; `max_size=0` keeps the full size
+DEFAULT_MAX_SIZE = 512
 
 
 def check_downscale(downscale: float) -> float:
@@ -23,6 +26,29 @@ def check_downscale(downscale: float) -> float:
     if not math.isfinite(d) or d <= 0:
         raise UserError(f"--downscale must be a positive number, got {downscale!r}", hint="e.g. --downscale 2")
     return d
+
+
+def check_max_size(max_size) -> int:
+    """Validate a --max-size (longest image side in pixels; 0 = no limit)."""
+    try:
+        m = int(max_size)
+    except (TypeError, ValueError):
+        m = -1
+    if m < 0 or (0 < m < 8) or m != max_size:
+        raise UserError(f"--max-size must be 0 (full size) or a whole number of pixels >= 8, got {max_size!r}",
+                        hint="e.g. --max-size 512")
+    return m
+
+
+def load_factor(cameras: Cameras, downscale: float, max_size: int = 0) -> float:
+    """The factor a split's images are resized by when loaded: 1/downscale, lowered further so the longest
+    side of the largest image is at most `max_size` (0 = no limit). One factor per split keeps its cameras'
+    intrinsics in proportion."""
+    factor = 1.0 / downscale
+    if max_size and len(cameras):
+        longest = float(max(int(cameras.width.max()), int(cameras.height.max())))
+        factor = min(factor, max_size / longest)
+    return factor
 
 
 def check_pose(c2w, path: Path, where: str) -> np.ndarray:
@@ -64,13 +90,15 @@ def every_eighth_split(n: int) -> tuple[list[int], list[int]]:
 
 
 def load_split(cameras: Cameras, paths: list[Path], names: list[str], downscale: float,
-               reader=None) -> SceneSplit:
-    """Read a split's images and fit them (and the cameras) to the downscaled size.
+               reader=None, max_size: int = 0) -> SceneSplit:
+    """Read a split's images and fit them (and the cameras) to the downscaled size (see `load_factor`).
 
     `cameras` describe the full-resolution images; an image stored at another size (a pre-shrunk
     `images_N/` folder) is resized to the target. `reader(i, path)` may replace `read_image` (e.g. to undistort).
+    Only the resized images are kept (one full-size image is held at a time).
     """
-    target = cameras.scaled(1.0 / downscale) if downscale != 1.0 else cameras
+    factor = load_factor(cameras, downscale, max_size)
+    target = cameras.scaled(factor) if factor != 1.0 else cameras
     images = []
     for i, p in enumerate(paths):
         img = reader(i, p) if reader else read_image(p)

@@ -13,7 +13,7 @@ from pathlib import Path
 from core.errors import SceneError, UserError
 from core.scene.loaders.blender import is_blender, load_blender
 from core.scene.loaders.colmap import find_model, load_colmap
-from core.scene.loaders.common import check_downscale
+from core.scene.loaders.common import DEFAULT_MAX_SIZE, check_downscale, check_max_size
 from core.scene.loaders.images import list_images
 from core.scene.loaders.llff import load_llff
 from core.scene.loaders.nerfstudio import load_nerfstudio
@@ -71,13 +71,13 @@ def _sfm_hook():
     return getattr(mod, "sfm_scene", None)
 
 
-def _load_photos(root: Path, downscale: float, splits, workspace=None) -> Scene:
+def _load_photos(root: Path, downscale: float, splits, workspace=None, max_size: int = 0) -> Scene:
     sfm = _sfm_hook()
     if sfm is None:
         raise SceneError("this folder holds photos without camera poses: structure-from-motion is needed", root,
                          hint="run `repaint-nerf sfm` on it first (not available in this version yet)")
     more = {k: v for k, v in (("workspace_dir", workspace), ("splits", splits)) if v is not None}
-    return sfm(root, downscale=downscale, **more)
+    return sfm(root, downscale=downscale, max_size=max_size, **more)
 
 
 LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_llff, "colmap": load_colmap,
@@ -85,21 +85,24 @@ LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_
 
 
 def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None,
-               workspace: str | Path | None = None) -> Scene:
+               workspace: str | Path | None = None, max_size: int = DEFAULT_MAX_SIZE) -> Scene:
     """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
 
     `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind, which
     is otherwise the dataset's (LLFF: forward; a transforms JSON's `scene_kind`) or detected from the
     camera layout (`core.scene.kinds`); `splits` restricts which splits' images are read;
-    `workspace` is where structure-from-motion on a photo folder caches its result.
+    `workspace` is where structure-from-motion on a photo folder caches its result; images whose longest
+    side exceeds `max_size` after `downscale` are loaded smaller to fit it (0 = full size), with their
+    intrinsics scaled alike.
     """
     downscale = check_downscale(downscale)
+    max_size = check_max_size(max_size)
     if kind is not None and kind not in SCENE_KINDS:
         raise UserError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
     splits = None if splits is None else ((splits,) if isinstance(splits, str) else tuple(splits))
     fmt, root = detect_format(path)
     extra_args = {"workspace": workspace} if fmt == "photos" else {}
-    scene = LOADERS[fmt](root, downscale=downscale, splits=splits, **extra_args)
+    scene = LOADERS[fmt](root, downscale=downscale, splits=splits, max_size=max_size, **extra_args)
     if not scene.splits or sum(len(s) for s in scene.splits.values()) == 0:
         raise SceneError(f"no images loaded (requested splits: {', '.join(splits or ('all',))})", root)
     if kind is not None:
@@ -107,6 +110,7 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     elif fmt in ("blender", "nerfstudio", "colmap") and not scene.extra.get("kind_given"):
         choose_kind(scene)
     scene.extra.setdefault("downscale", downscale)
+    scene.extra.setdefault("max_size", max_size)
     normalize_scene(scene)
     return scene
 
@@ -120,4 +124,5 @@ def load_workspace_scene(settings: dict, header: dict | None = None, workspace: 
         raise UserError("the workspace does not say which scene it holds",
                         hint="train it first: repaint-nerf train SCENE --workspace WS")
     kind = facts.get("kind") or settings.get("kind")
-    return load_scene(Path(root), float(settings.get("downscale", 1.0)), kind=kind, workspace=workspace)
+    return load_scene(Path(root), float(settings.get("downscale", 1.0)), kind=kind, workspace=workspace,
+                      max_size=int(settings.get("max_size", DEFAULT_MAX_SIZE)))

@@ -46,8 +46,9 @@ def image_folder(root: Path, downscale: float) -> Path:
     return shrunk[0][1]
 
 
-def load_llff(root: Path, downscale: float = 1.0, splits=None) -> Scene:
-    """Load an LLFF scene; every 8th image is test, near/far come from the per-view bounds."""
+def load_llff(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
+    """Load an LLFF scene; every 8th image is test, near/far come from the per-view bounds; `max_size` as in
+    load_split."""
     root = Path(root)
     path = root / "poses_bounds.npy"
     try:
@@ -83,6 +84,7 @@ def load_llff(root: Path, downscale: float = 1.0, splits=None) -> Scene:
     out = {}
     for name, idx in (("train", tr), ("test", te)):
         if idx and wanted(name, splits):
-            out[name] = load_split(cams[idx], [files[i] for i in idx], [files[i].name for i in idx], downscale)
+            out[name] = load_split(cams[idx], [files[i] for i in idx], [files[i].name for i in idx], downscale,
+                                   max_size=max_size)
     return Scene(root=root, format="llff", splits=out, kind="forward", near=float(bounds.min() * 0.9),
                  far=float(bounds.max() * 1.1), extra={"bounds": bounds, "images_dir": folder.name})

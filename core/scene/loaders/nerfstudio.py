@@ -18,7 +18,7 @@ def _norm(p: str) -> str:
     return p[2:] if p.startswith("./") else p
 
 
-def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None) -> Scene:
+def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
     """Load `root/transforms.json` (or the JSON file given) as a scene with train/test splits."""
     root = Path(root)
     path = root if root.is_file() else root / "transforms.json"
@@ -47,7 +47,7 @@ def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None) -> Scene:
         groups = {"train": [order[k] for k in tr]}
         if te:
             groups["test"] = [order[k] for k in te]
-    out = {s: load_frames(meta, frames, idx, root, path, downscale, same_size=False)
+    out = {s: load_frames(meta, frames, idx, root, path, downscale, same_size=False, max_size=max_size)
            for s, idx in groups.items() if idx and wanted(s, splits)}
     extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
     aabb = parse_aabb(meta, path)

@@ -147,7 +147,7 @@ def frame_intrinsics(meta: dict, frame: dict, path: Path, i: int, image_size: tu
 
 
 def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path: Path, downscale: float,
-                same_size: bool) -> SceneSplit:
+                same_size: bool, max_size: int = 0) -> SceneSplit:
     """Build one split from frames `idx` of a transforms file: validated poses, intrinsics, images.
 
     `same_size` (Blender) makes images of different sizes within the split a `SceneError`. Sizes come
@@ -178,7 +178,7 @@ def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path
         return undistort_image(img, cams[k])[0] if needs_undistortion(cams[k]) else img
 
     names = [_relative_name(p, root) for p in paths]
-    return load_split(cameras, paths, names, downscale, reader=reader)
+    return load_split(cameras, paths, names, downscale, reader=reader, max_size=max_size)
 
 
 def parse_background(meta: dict, path: Path):
