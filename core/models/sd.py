@@ -59,6 +59,11 @@ class StableDiffusion:
         return float(getattr(self.vae.config, "scaling_factor", 0.18215))
 
     @property
+    def prediction_type(self) -> str:
+        """What the UNet predicts, from its scheduler: 'epsilon' (SD 1.x, 2.x base) or 'v_prediction' (2.x 768)."""
+        return str(getattr(self.scheduler.config, "prediction_type", "epsilon"))
+
+    @property
     def num_train_timesteps(self) -> int:
         return int(self.scheduler.config.num_train_timesteps)
 
@@ -79,7 +84,7 @@ class StableDiffusion:
 
     @torch.no_grad()
     def predict_noise(self, latents: Tensor, t: Tensor, embeddings: Tensor) -> Tensor:
-        """UNet epsilon prediction (no gradient); moves the UNet on and off the GPU when offloading."""
+        """UNet output (no gradient): the noise, or v per `prediction_type`; moves the UNet on and off the GPU when offloading."""
         if self.offload_unet:
             self.unet.to(self.device)
         try:
