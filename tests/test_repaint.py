@@ -99,19 +99,6 @@ def test_analytic_drift_moves_only_the_unmasked_target(tmp_path):
     torch.testing.assert_close(t1[..., ~m], want)
 
 
-def test_unmask_reduction_sum_is_the_mean_times_the_kept_values(scene):
-    from core.errors import UserError
-
-    mean = _trainer(scene, "recolor", steps=1, prompt="blue")
-    total = _trainer(scene, "recolor", steps=1, prompt="blue", unmask_reduction="sum")
-    rgb = torch.rand(1, 3, *mean.size)
-    kept = 3 * float(mean.keep[0].sum())
-    assert kept > 0
-    torch.testing.assert_close(total.unmask_loss(rgb, 0), mean.unmask_loss(rgb, 0) * kept)
-    with pytest.raises(UserError, match="reduction"):
-        _trainer(scene, "recolor", steps=1, prompt="blue", unmask_reduction="max")
-
-
 def test_analytic_needs_the_edited_variant(scene):
     from core.errors import UserError
 
