@@ -18,8 +18,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--guidance", default="sd", choices=("sd", "recolor", "remove", "analytic"),
                    help="sd: Stable Diffusion score distillation; recolor / remove: offline, no model; "
                         "analytic: exact denoiser of a synthetic scene's edited/ variant (measurement)")
-    p.add_argument("--sd-path", default=None, help="local Stable Diffusion folder or .safetensors "
-                                                   "(else $REPAINT_NERF_SD_PATH)")
+    p.add_argument("--sd-path", default=None, help="local Stable Diffusion folder, .safetensors/.ckpt "
+                        "file, or a model id in the local Hugging Face cache (else $REPAINT_NERF_SD_PATH)")
+    p.add_argument("--sd-config", default=None,
+                   help="diffusers config folder for a single-file checkpoint (default: the shipped config of the "
+                        "family its weights show: SD 1.x, 2.x base or 2.x 768-v)")
+    p.add_argument("--sd-family", default=None, choices=("sd1", "sd2-base", "sd2-768-v"),
+                   help="the single-file checkpoint's family when its name does not tell 2.x base from 768-v "
+                        "(a name with '768' or 'v-pred' is read as 768-v, else base)")
+    p.add_argument("--prediction-type", default=None, choices=("epsilon", "v_prediction"),
+                   help="what the UNet predicts, when its scheduler config says otherwise or nothing "
+                        "(SD 2.x 768 models: v_prediction)")
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--steps", type=int, default=None, help="edit steps (default 300 on CPU; the paper runs 10000)")
     p.add_argument("--lambda-unmask", type=float, default=100.0, help="weight of the unmask loss (paper: 100)")
@@ -33,7 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--color", default=None, help="recolour target as R,G,B (0-255) or #rrggbb (default: a colour "
                                                  "named in the prompt)")
     p.add_argument("--optimizer", default="paper", choices=("paper", "official"),
-                   help="paper: Adan 1e-3 -> 1e-4; official code: 5e-3 with 10x on the grid")
+                   help="Adan decaying x0.1 over the edit; paper: 1e-3 -> 1e-4; official code: 5e-3 -> 5e-4 with "
+                        "10x on the grid")
     p.add_argument("--lr", type=float, default=None, help="base learning rate (overrides the preset)")
     p.add_argument("--mask-dilation", type=int, default=0, help="pixels to grow the mask by")
     p.add_argument("--seed", type=int, default=0)
@@ -106,7 +116,8 @@ def run(args: argparse.Namespace) -> int:
     ws, scene, field, grid, masks = open_workspace(args.workspace, args.device)
     cfg = RepaintConfig(lambda_unmask=args.lambda_unmask, unmask_reduction=args.unmask_reduction,
                         lambda_clip=lambda_clip, resolution=args.resolution,
-                        optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed)
+                        optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed,
+                        sd_config=args.sd_config, sd_family=args.sd_family, sd_prediction_type=args.prediction_type)
     if args.steps is not None:
         cfg.steps = args.steps
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,

@@ -6,6 +6,7 @@ flag and environment variable to set (DESIGN.md, "Every pretrained network is lo
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,10 +58,39 @@ def _from_settings(settings: Mapping[str, Any] | None, k: ModelKind) -> str | No
     return str(value) if value else None
 
 
+def hub_cache_dir(environ: Mapping[str, str] | None = None) -> Path:
+    """The local Hugging Face hub cache: $HF_HUB_CACHE, else $HF_HOME/hub, else ~/.cache/huggingface/hub."""
+    env = os.environ if environ is None else environ
+    if env.get("HF_HUB_CACHE"):
+        return Path(env["HF_HUB_CACHE"]).expanduser()
+    home = env.get("HF_HOME") or str(Path(env.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "huggingface")
+    return Path(home).expanduser() / "hub"
+
+
+def looks_like_model_id(name: str) -> bool:
+    """'org/name' as the Hugging Face hub spells a model id (not a relative or absolute path)."""
+    return re.fullmatch(r"[A-Za-z0-9][\w.-]*/[\w.-]+", name) is not None and not name.startswith(".")
+
+
+def cached_snapshot(model_id: str, environ: Mapping[str, str] | None = None) -> Path | None:
+    """The folder of `model_id`'s cached snapshot (refs/main) in the local HF cache, or None; never the network."""
+    if not looks_like_model_id(model_id):
+        return None
+    from huggingface_hub import snapshot_download
+
+    try:
+        return Path(snapshot_download(model_id, cache_dir=str(hub_cache_dir(environ)), local_files_only=True))
+    except Exception:  # not cached (LocalEntryNotFoundError) or a malformed cache entry: both mean "not here"
+        return None
+
+
 def resolve_model_path(kind: str, flag: str | os.PathLike | None = None,
                        settings: Mapping[str, Any] | None = None,
                        environ: Mapping[str, str] | None = None) -> Path:
     """The local path of a `kind` model: `flag` > $REPAINT_NERF_<KIND>_PATH > $REPAINT_NERF_MODELS/<kind> > settings.
+
+    A value that is no existing path but a model id ('org/name') resolves to its snapshot in the local
+    Hugging Face cache (offline).
 
     Raises ModelNotFoundError (naming the flag and environment variable) when nothing is configured or
     the configured path does not exist.
@@ -86,6 +116,11 @@ def resolve_model_path(kind: str, flag: str | os.PathLike | None = None,
     source, value = candidates[0]
     path = Path(value).expanduser()
     if not path.exists():
+        snapshot = cached_snapshot(value, env)
+        if snapshot is not None:
+            return snapshot
+        id_hint = (f"; {value!r} is not in the local Hugging Face cache ({hub_cache_dir(env)}) either: download it "
+                   f"there on a machine with a network, or give a local folder" if looks_like_model_id(value) else "")
         raise ModelNotFoundError(f"the {k.title} given by {source} does not exist", path=path,
-                                 hint=how_to_set(kind))
+                                 hint=how_to_set(kind) + id_hint)
     return path

@@ -16,9 +16,11 @@ __all__ = ["Guidance", "GuidanceResult", "build_guidance"]
 def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
                    sd_path: str | os.PathLike | None = None, settings: Mapping[str, Any] | None = None,
                    targets=None, device=None, cpu_offload: bool = False,
-                   single_file_config: str | os.PathLike | None = None, **options) -> Guidance:
+                   sd_config: str | os.PathLike | None = None, sd_family: str | None = None,
+                   prediction_type: str | None = None, **options) -> Guidance:
     """A guidance backend: 'sd' (Stable Diffusion from flag > env > settings) or 'analytic' (needs `targets`).
 
+    `sd_config`, `sd_family`, `prediction_type` go to the SD loader (core.models.sd.load_stable_diffusion);
     `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed).
     """
     if kind == "sd":
@@ -27,7 +29,8 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
         from core.repaint.sds import SDSGuidance
 
         sd = load_stable_diffusion(resolve_model_path("sd", sd_path, settings), device=device,
-                                   cpu_offload=cpu_offload, single_file_config=single_file_config)
+                                   cpu_offload=cpu_offload, config=sd_config, family=sd_family,
+                                   prediction_type=prediction_type)
         return SDSGuidance(sd, prompt, negative_prompt, **options)
     if kind == "analytic":
         from core.repaint.analytic import AnalyticGuidance

@@ -11,11 +11,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.models.sd import StableDiffusion
+from core.models.sd import PREDICTION_TYPES, StableDiffusion
 from core.repaint.guidance import GuidanceResult, TimestepSampler, distillation_loss
 
-
-PREDICTION_TYPES = ("epsilon", "v_prediction")
 
 
 def noise_from_prediction(pred: Tensor, noisy: Tensor, alpha_bar: Tensor | float, prediction_type: str) -> Tensor:

@@ -76,6 +76,12 @@ class RepaintConfig:
     # toward a flat tint, as a diffusion model also repaints surroundings it was not asked to change; the
     # unmask loss (paper Eq. unmask) is what holds them. 0 = the true edited views.
     analytic_drift: float = 0.0
+    # Stable Diffusion loading (core.models.sd): a diffusers config folder for a single-file checkpoint (default:
+    # the shipped one of its detected family), the family (sd1 | sd2-base | sd2-768-v) and prediction type
+    # (epsilon | v_prediction) when the file or folder says otherwise or nothing.
+    sd_config: str | None = None
+    sd_family: str | None = None
+    sd_prediction_type: str | None = None
 
 
 DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the unmasked target
@@ -260,7 +266,9 @@ class RepaintTrainer:
 
             settings = self.workspace.settings if self.workspace is not None else None
             return build_guidance("sd", prompt=self.prompt, negative_prompt=negative_prompt, sd_path=sd_path,
-                                  settings=settings, device=self.device, seed=self.cfg.seed)
+                                  settings=settings, device=self.device, seed=self.cfg.seed,
+                                  sd_config=self.cfg.sd_config, sd_family=self.cfg.sd_family,
+                                  prediction_type=self.cfg.sd_prediction_type)
         raise UserError(f"unknown guidance {kind!r}", hint=f"use one of: {', '.join(GUIDANCES)}")
 
     def _build_clip(self, clip_path):
