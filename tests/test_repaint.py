@@ -73,7 +73,7 @@ def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
     targets = edited_images(scene)
     field = make_field()
     tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="analytic", steps=30,
-                        optimizer="official", lr=0.02, max_samples=256)
+                        optimizer="official", lr=0.05, max_samples=256)
     before = tr.evaluate("train", masks, targets)
     tr.run()
     after = tr.evaluate("train", masks, targets)

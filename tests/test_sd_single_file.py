@@ -198,7 +198,8 @@ def test_cached_model_id_resolves_offline(tiny, tmp_path):
     folder, _, _ = tiny
     _hf_cache(tmp_path / "hf-home", "stabilityai/stable-diffusion-2-base", folder)
     path = resolve_model_path("sd", "stabilityai/stable-diffusion-2-base")
-    assert path == tmp_path / "hf-home" / "hub" / "models--stabilityai--stable-diffusion-2-base" / "snapshots" / "abc123"
+    repo = tmp_path / "hf-home" / "hub" / "models--stabilityai--stable-diffusion-2-base"
+    assert path == repo / "snapshots" / "abc123"
     _same_weights(load_stable_diffusion(folder), load_stable_diffusion(path))
     with pytest.raises(ModelNotFoundError, match="Hugging Face cache") as err:
         resolve_model_path("sd", "stabilityai/stable-diffusion-2-1")

@@ -46,7 +46,8 @@ class Family:
 
 _SD1_REPOS = (("openai/clip-vit-large-patch14", ""), ("stable-diffusion-v1-5/stable-diffusion-v1-5", "tokenizer"),
               ("runwayml/stable-diffusion-v1-5", "tokenizer"), ("CompVis/stable-diffusion-v1-4", "tokenizer"))
-_SD2_REPOS = (("stabilityai/stable-diffusion-2-1-base", "tokenizer"), ("stabilityai/stable-diffusion-2-base", "tokenizer"),
+_SD2_REPOS = (("stabilityai/stable-diffusion-2-1-base", "tokenizer"),
+              ("stabilityai/stable-diffusion-2-base", "tokenizer"),
               ("stabilityai/stable-diffusion-2-1", "tokenizer"), ("stabilityai/stable-diffusion-2", "tokenizer"))
 FAMILIES = {
     "sd1": Family("sd1", "SD 1.x (CLIP ViT-L, 512 px, epsilon)", "clip", "<|endoftext|>", _SD1_REPOS + _SD2_REPOS),
@@ -227,9 +228,9 @@ def find_tokenizer(family: str, checkpoint: Path, config: Path | None = None):
             raise ModelNotFoundError(
                 "original Stable Diffusion checkpoints carry no tokenizer, and none was found locally",
                 path=checkpoint,
-                hint=f"copy a CLIP tokenizer folder (tokenizer.json, or vocab.json and merges.txt: e.g. the tokenizer/ folder of any "
-                     f"diffusers SD 1.x/2.x model) to {checkpoint.parent / 'tokenizer'}, or set {TOKENIZER_ENV}=DIR, "
-                     f"or have openai/clip-vit-large-patch14 in the Hugging Face cache")
+                hint=f"copy a CLIP tokenizer folder (tokenizer.json, or vocab.json and merges.txt: e.g. the "
+                     f"tokenizer/ folder of any diffusers SD 1.x/2.x model) to {checkpoint.parent / 'tokenizer'}, "
+                     f"or set {TOKENIZER_ENV}=DIR, or have openai/clip-vit-large-patch14 in the Hugging Face cache")
         with tempfile.TemporaryDirectory() as tmp:  # the tokenizer reads both files when built
             folder = tokenizer_files_from_bpe(bpe, Path(tmp))
             tok = CLIPTokenizer(str(folder / "vocab.json"), str(folder / "merges.txt"), model_max_length=77)
