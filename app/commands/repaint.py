@@ -31,18 +31,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(SD 2.x 768 models: v_prediction)")
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--steps", type=int, default=None, help="edit steps (default 300 on CPU; the paper runs 10000)")
-    p.add_argument("--lambda-unmask", type=float, default=100.0, help="weight of the unmask loss (paper: 100)")
-    p.add_argument("--unmask-reduction", choices=("mean", "sum"), default="mean",
-                   help="the unmask loss averaged over pixels (official code, default) or summed over rays (the "
-                        "paper's Eq.; holds the background far more firmly at the same weight)")
+    p.add_argument("--lambda-unmask", type=float, default=None,
+                   help="weight of the unmask loss, paper Eq. s2 (default: RepaintConfig's)")
+    p.add_argument("--unmask-reduction", choices=("mean", "sum"), default=None,
+                   help="Eq. unmask summed over rays as the paper writes it (sum), or averaged over the whole image "
+                        "with the masked pixels zeroed as the official code does (mean: the sum / 3HW, so far weaker "
+                        "at the same weight); default: RepaintConfig's")
     p.add_argument("--lambda-clip", type=float, default=None,
                    help="weight of the CLIP background loss (default 0.01 with --guidance sd, else 0; 0 loads no CLIP)")
     p.add_argument("--resolution", type=int, default=None,
                    help="render long side in pixels (default: training size, at most 128 on CPU / 400 on CUDA)")
     p.add_argument("--color", default=None, help="recolour target as R,G,B (0-255) or #rrggbb (default: a colour "
                                                  "named in the prompt)")
-    p.add_argument("--optimizer", default="paper", choices=("paper", "official"),
-                   help="Adan decaying x0.1 over the edit; paper: 1e-3 -> 1e-4; official code: 5e-3 -> 5e-4 with "
+    p.add_argument("--optimizer", default=None, choices=("paper", "official"),
+                   help="Adan decaying x0.1 over the edit (default: RepaintConfig's); paper: 1e-3 -> 1e-4; official code: 5e-3 -> 5e-4 with "
                         "10x on the grid")
     p.add_argument("--lr", type=float, default=None, help="base learning rate (overrides the preset)")
     p.add_argument("--mask-dilation", type=int, default=0, help="pixels to grow the mask by")
@@ -56,7 +58,7 @@ def check_args(args: argparse.Namespace) -> None:
 
     if args.steps is not None and args.steps < 1:
         raise UserError(f"--steps must be at least 1, got {args.steps}")
-    if args.lambda_unmask < 0:
+    if args.lambda_unmask is not None and args.lambda_unmask < 0:
         raise UserError(f"--lambda-unmask must not be negative, got {args.lambda_unmask}")
     if args.lambda_clip is not None and args.lambda_clip < 0:
         raise UserError(f"--lambda-clip must not be negative, got {args.lambda_clip}")
@@ -114,10 +116,11 @@ def run(args: argparse.Namespace) -> int:
         if lambda_clip > 0:
             resolve_model_path("clip", args.clip_path, settings)
     ws, scene, field, grid, masks = open_workspace(args.workspace, args.device)
-    cfg = RepaintConfig(lambda_unmask=args.lambda_unmask, unmask_reduction=args.unmask_reduction,
-                        lambda_clip=lambda_clip, resolution=args.resolution,
-                        optimizer=args.optimizer, lr=args.lr, mask_dilation=args.mask_dilation, seed=args.seed,
-                        sd_config=args.sd_config, sd_family=args.sd_family, sd_prediction_type=args.prediction_type)
+    given = {k: getattr(args, k) for k in ("lambda_unmask", "unmask_reduction", "optimizer")
+             if getattr(args, k) is not None}
+    cfg = RepaintConfig(lambda_clip=lambda_clip, resolution=args.resolution, lr=args.lr,
+                        mask_dilation=args.mask_dilation, seed=args.seed, sd_config=args.sd_config,
+                        sd_family=args.sd_family, sd_prediction_type=args.prediction_type, **given)
     if args.steps is not None:
         cfg.steps = args.steps
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,
