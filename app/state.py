@@ -43,7 +43,7 @@ class EditorState:
     backend: str = "offline"
     sd_path: str = ""
     clip_path: str = ""
-    lambda_unmask: float = 100.0
+    lambda_unmask: float = 10.0  # RepaintConfig's default (paper Eq. s2, summed: see core.repaint.trainer)
     steps: int = 200
     repaint_running: bool = False
     training: bool = True
