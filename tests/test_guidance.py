@@ -102,6 +102,57 @@ def test_sds_classifier_free_guidance_and_weight(sd, monkeypatch):
     torch.testing.assert_close(seen["emb"], torch.cat([sd.encode_text([""]), sd.encode_text(["a rose"])]))
 
 
+@pytest.mark.parametrize("prediction_type", ["epsilon", "v_prediction"])
+def test_sds_reads_the_model_prediction_type(sd, monkeypatch, prediction_type):
+    """A UNet that predicts its target exactly gives zero SDS gradient, whether it predicts the noise or v.
+
+    The reference targets come from diffusers' scheduler (add_noise / get_velocity), not from sds.py:
+    v = sqrt(abar) eps - sqrt(1 - abar) x0, so reading v as eps (the old bug) leaves a non-zero gradient."""
+    from diffusers import DDIMScheduler
+
+    monkeypatch.setattr(sd, "scheduler", DDIMScheduler.from_config(sd.scheduler.config,
+                                                                   prediction_type=prediction_type))
+    assert sd.prediction_type == prediction_type
+    g = SDSGuidance(sd, "a rose", guidance_scale=3.0, seed=2)
+    x0 = torch.randn(1, 4, 8, 8)
+    noise = torch.randn(1, 4, 8, 8)
+    monkeypatch.setattr(g, "_noise", lambda like: noise)
+    monkeypatch.setattr(sd, "encode_images", lambda x, gen=None: x0 + 0 * x.mean())
+
+    def exact_unet(latents, t, emb):
+        target = noise if prediction_type == "epsilon" else sd.scheduler.get_velocity(x0, noise, t[:1])
+        return target.repeat(2, 1, 1, 1)
+
+    monkeypatch.setattr(sd, "predict_noise", exact_unet)
+    out = g.loss(torch.rand(1, 3, 16, 16, requires_grad=True), None, 0, 0)
+    assert out["grad_norm"] < 1e-4 * float(noise.norm())
+
+    # An arbitrary v: eps from the x0 the v implies, x0_hat = sqrt(abar) x_t - sqrt(1 - abar) v,
+    # eps = (x_t - sqrt(abar) x0_hat) / sqrt(1 - abar) (the DDIM step's own algebra, written out here).
+    if prediction_type == "v_prediction":
+        v_u, v_c = torch.randn(1, 4, 8, 8), torch.randn(1, 4, 8, 8)
+        monkeypatch.setattr(sd, "predict_noise", lambda lat, t, emb: torch.cat([v_u, v_c]))
+        out = g.loss(torch.rand(1, 3, 16, 16, requires_grad=True), None, 0, 0)
+        ab = float(sd.alphas_cumprod[out["t"]])
+        x_t = math.sqrt(ab) * x0 + math.sqrt(1 - ab) * noise
+
+        def eps_of(v):
+            x0_hat = math.sqrt(ab) * x_t - math.sqrt(1 - ab) * v
+            return (x_t - math.sqrt(ab) * x0_hat) / math.sqrt(1 - ab)
+
+        eps_hat = eps_of(v_u) + 3.0 * (eps_of(v_c) - eps_of(v_u))
+        expected = (1 - ab) * (eps_hat - noise)
+        assert out["grad_norm"] == pytest.approx(float(expected.norm()), rel=1e-4)
+
+
+def test_sds_rejects_unknown_prediction_type(sd, monkeypatch):
+    from diffusers import DDIMScheduler
+
+    monkeypatch.setattr(sd, "scheduler", DDIMScheduler.from_config(sd.scheduler.config, prediction_type="sample"))
+    with pytest.raises(ValueError, match="prediction_type"):
+        SDSGuidance(sd, "a rose", seed=0).loss(torch.rand(1, 3, 16, 16, requires_grad=True), None, 0, 0)
+
+
 def test_sds_prompt_embeddings_are_cached(sd, monkeypatch):
     calls = []
     real = sd.encode_text

@@ -89,7 +89,7 @@ def scene():
 
 def _run(scene, masks, kind, steps, **kw):
     field = make_field()
-    tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance=kind, steps=steps, optimizer="official", lr=0.02,
+    tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance=kind, steps=steps, optimizer="official", lr=0.05,
                         max_samples=256, **kw)
     before = tr.evaluate("train", masks)
     tr.run()

@@ -100,7 +100,7 @@ def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
     targets = edited_images(scene)
     field = make_field()
     tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="analytic", steps=30,
-                        optimizer="official", lr=0.02, max_samples=256)
+                        optimizer="official", lr=0.05, max_samples=256)
     before = tr.evaluate("train", masks, targets)
     tr.run()
     after = tr.evaluate("train", masks, targets)
@@ -124,19 +124,6 @@ def test_analytic_drift_moves_only_the_unmasked_target(tmp_path):
     torch.testing.assert_close(t1[..., m], t0[..., m])  # the edit's target is untouched
     want = t0[..., ~m] + 0.5 * (torch.tensor(DRIFT_TINT).view(1, 3, 1) - t0[..., ~m])
     torch.testing.assert_close(t1[..., ~m], want)
-
-
-def test_unmask_reduction_sum_is_the_mean_times_the_kept_values(scene):
-    from core.errors import UserError
-
-    mean = _trainer(scene, "recolor", steps=1, prompt="blue")
-    total = _trainer(scene, "recolor", steps=1, prompt="blue", unmask_reduction="sum")
-    rgb = torch.rand(1, 3, *mean.size)
-    kept = 3 * float(mean.keep[0].sum())
-    assert kept > 0
-    torch.testing.assert_close(total.unmask_loss(rgb, 0), mean.unmask_loss(rgb, 0) * kept)
-    with pytest.raises(UserError, match="reduction"):
-        _trainer(scene, "recolor", steps=1, prompt="blue", unmask_reduction="max")
 
 
 def test_analytic_needs_the_edited_variant(scene):

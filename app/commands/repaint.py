@@ -19,7 +19,7 @@ HELP = "repaint the selected region (stage 2) under a guidance and save it as a 
 # the field's default, so the CLI, the editor and the benchmarks share one set of defaults.
 CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_reduction", "lambda_clip", "resolution", "optimizer", "lr",
                 "mask_dilation", "seed", "sd_unet_precision", "sd_tiny_autoencoder", "sd_channels_last",
-                "sds_resolution", "t_schedule")
+                "sds_resolution", "t_schedule", "sd_config", "sd_family", "sd_prediction_type")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,16 +28,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prompt", default="", help="what the selection should become, e.g. 'a blue rose in leaves'")
     p.add_argument("--bg-prompt", default="", help="what the rest shows, e.g. 'leaves' (the CLIP background loss)")
     p.add_argument("--guidance", default="sd", choices=tuple(registry.GUIDANCES), help=registry.help_text())
-    p.add_argument("--sd-path", default=None, help="local Stable Diffusion folder or .safetensors "
-                                                   "(else $REPAINT_NERF_SD_PATH)")
+    p.add_argument("--sd-path", default=None, help="local Stable Diffusion folder, .safetensors/.ckpt "
+                        "file, or a model id in the local Hugging Face cache (else $REPAINT_NERF_SD_PATH)")
+    p.add_argument("--sd-config", dest="sd_config", default=d.sd_config,
+                   help="diffusers config folder for a single-file checkpoint (default: the shipped config of the "
+                        "family its weights show: SD 1.x, 2.x base or 2.x 768-v)")
+    p.add_argument("--sd-family", dest="sd_family", default=d.sd_family, choices=("sd1", "sd2-base", "sd2-768-v"),
+                   help="the single-file checkpoint's family when its name does not tell 2.x base from 768-v "
+                        "(a name with '768' or 'v-pred' is read as 768-v, else base)")
+    p.add_argument("--prediction-type", dest="sd_prediction_type", default=d.sd_prediction_type,
+                   choices=("epsilon", "v_prediction"),
+                   help="what the UNet predicts, when its scheduler config says otherwise or nothing "
+                        "(SD 2.x 768 models: v_prediction)")
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--steps", type=int, default=d.steps,
                    help=f"edit steps (default {d.steps}, what a CPU finishes in minutes; the paper runs 10000)")
     p.add_argument("--lambda-unmask", type=float, default=d.lambda_unmask,
-                   help=f"weight of the unmask loss (default {d.lambda_unmask:g}; paper: 100)")
+                   help=f"weight of the unmask loss, paper Eq. s2 (default {d.lambda_unmask:g})")
     p.add_argument("--unmask-reduction", choices=UNMASK_REDUCTIONS, default=d.unmask_reduction,
-                   help=f"the unmask loss averaged over pixels (official code) or summed over rays (the paper's "
-                        f"Eq.; holds the background far more firmly at the same weight); default {d.unmask_reduction}")
+                   help="Eq. unmask summed over rays as the paper writes it (sum), or averaged over the whole image "
+                        "with the masked pixels zeroed as the official code does (mean: the sum / 3HW, so far weaker "
+                        f"at the same weight); default {d.unmask_reduction}")
     clip_defaults = ", ".join(f"{s.clip_weight:g} with --guidance {s.name}" for s in registry.GUIDANCES.values()
                               if s.clip_weight > 0)
     p.add_argument("--lambda-clip", type=float, default=d.lambda_clip,
@@ -47,7 +58,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--color", default=None, help="recolour target as R,G,B (0-255) or #rrggbb (default: a colour "
                                                  "named in the prompt)")
     p.add_argument("--optimizer", default=d.optimizer, choices=OPTIMIZERS,
-                   help=f"paper: Adan 1e-3 -> 1e-4; official code: 5e-3 with 10x on the grid (default {d.optimizer})")
+                   help="Adan decaying x0.1 over the edit; paper: 1e-3 -> 1e-4; official code: 5e-3 -> 5e-4 with "
+                        f"10x on the grid (default {d.optimizer})")
     p.add_argument("--lr", type=float, default=d.lr, help="base learning rate (overrides the preset)")
     p.add_argument("--mask-dilation", type=int, default=d.mask_dilation, help="pixels to grow the mask by")
     p.add_argument("--seed", type=int, default=d.seed)
@@ -83,7 +95,7 @@ def check_args(args: argparse.Namespace) -> None:
 
     if args.steps < 1:
         raise UserError(f"--steps must be at least 1, got {args.steps}")
-    if args.lambda_unmask < 0:
+    if args.lambda_unmask is not None and args.lambda_unmask < 0:
         raise UserError(f"--lambda-unmask must not be negative, got {args.lambda_unmask}")
     if args.lambda_clip is not None and args.lambda_clip < 0:
         raise UserError(f"--lambda-clip must not be negative, got {args.lambda_clip}")

@@ -148,6 +148,9 @@ def resolve_model_path(kind: str, flag: str | os.PathLike | None = None,
     """The local path of a `kind` model: `flag` > $REPAINT_NERF_<KIND>_PATH > $REPAINT_NERF_MODELS/<kind> > settings,
     each a path or a model id in the local hub cache (`locate_model`).
 
+    A value that is no existing path but a model id ('org/name') resolves to its snapshot in the local
+    Hugging Face cache (offline).
+
     Raises ModelNotFoundError (naming the flag and environment variable) when nothing is configured or
     the configured path does not exist.
     """

@@ -1,4 +1,5 @@
-"""The one Stable Diffusion loader: a local diffusers folder or a single-file checkpoint, never a hub.
+"""The one Stable Diffusion loader: a local diffusers folder, a model id in the local HF cache (resolved by
+core.models.paths) or a single-file checkpoint (core.models.sd_single_file), never the network.
 
 Holds the frozen parts score distillation needs (UNet, VAE, text encoder, tokenizer, a DDIM schedule)
 and the three operations it performs with them: encode a prompt, encode an image with gradient,
@@ -17,6 +18,7 @@ from core.device import get_device, is_cuda
 from core.errors import ModelNotFoundError
 from core.models.paths import how_to_set
 
+PREDICTION_TYPES = ("epsilon", "v_prediction")  # what a UNet may predict (core.repaint.sds reads both)
 COMPONENTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
 SINGLE_FILE_SUFFIXES = (".safetensors", ".ckpt")
 # Only alphas_cumprod and add_noise are used; these silence diffusers' warnings about old SD configs.
@@ -60,6 +62,11 @@ class StableDiffusion:
         return float(getattr(self.vae.config, "scaling_factor", 0.18215))
 
     @property
+    def prediction_type(self) -> str:
+        """What the UNet predicts, from its scheduler: 'epsilon' (SD 1.x, 2.x base) or 'v_prediction' (2.x 768)."""
+        return str(getattr(self.scheduler.config, "prediction_type", "epsilon"))
+
+    @property
     def num_train_timesteps(self) -> int:
         return int(self.scheduler.config.num_train_timesteps)
 
@@ -93,7 +100,8 @@ class StableDiffusion:
 
     @torch.no_grad()
     def predict_noise(self, latents: Tensor, t: Tensor, embeddings: Tensor) -> Tensor:
-        """UNet epsilon prediction (no gradient); moves the UNet on and off the GPU when offloading."""
+        """UNet output (no gradient): the noise, or v per `prediction_type`; moves the UNet on and off the GPU
+        when offloading."""
         if self.offload_unet:
             self.unet.to(self.device)
         try:
@@ -125,42 +133,61 @@ def _load_folder(path: Path, dtype: torch.dtype):
         vae = AutoencoderKL.from_pretrained(path, subfolder="vae", torch_dtype=dtype, **kw)
         text_encoder = CLIPTextModel.from_pretrained(path, subfolder="text_encoder", torch_dtype=dtype, **kw)
         tokenizer = CLIPTokenizer.from_pretrained(path, subfolder="tokenizer", **kw)
-        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", **_DDIM_OVERRIDES, **kw)
+        scheduler = DDIMScheduler.from_pretrained(path, subfolder="scheduler", **kw)
     except (OSError, ValueError, EnvironmentError) as exc:
         raise ModelNotFoundError(f"could not load the Stable Diffusion folder: {exc}", path=path,
                                  hint="check that every component folder has its config and weights") from exc
     return unet, vae, text_encoder, tokenizer, scheduler
 
 
-def _load_single_file(path: Path, dtype: torch.dtype, config: str | os.PathLike | None):
-    from diffusers import DDIMScheduler, StableDiffusionPipeline
+def _load_single_file(path: Path, dtype: torch.dtype, config: Path | None, family: str | None,
+                      prediction_type: str | None):
+    """An original-layout checkpoint with the shipped config of its detected family (or `config`), offline."""
+    from diffusers import StableDiffusionPipeline
 
-    kw = dict(local_files_only=True, torch_dtype=dtype)
-    if config is not None:
-        kw["config"] = str(config)
+    from core.models import sd_single_file as sf
+
+    shapes = sf.checkpoint_shapes(path)
+    fam = sf.detect_family(shapes, path, family, prediction_type)
+    if config is None:
+        config = sf.config_folder(fam)
+    elif not (config / "model_index.json").is_file():
+        raise ModelNotFoundError("the --sd-config folder has no model_index.json", path=config,
+                                 hint="give a diffusers config folder: model_index.json, unet/, vae/, text_encoder/, "
+                                      "scheduler/ (the weights are not needed)")
+    sf.check_matches_config(shapes, config, path)
+    tokenizer = sf.find_tokenizer(fam, path, config)
     try:
-        pipe = StableDiffusionPipeline.from_single_file(str(path), **kw)
-    except Exception as exc:  # diffusers raises several types here; all mean "cannot build it locally"
+        pipe = StableDiffusionPipeline.from_single_file(
+            str(path), config=str(config), local_files_only=True, torch_dtype=dtype, tokenizer=tokenizer,
+            safety_checker=None, feature_extractor=None)
+    except Exception as exc:  # diffusers raises several types here; all mean "cannot build it from this file"
         raise ModelNotFoundError(
-            f"could not load the single-file checkpoint with a local config: {exc}", path=path,
-            hint="pass the matching diffusers config folder (model_index.json and component configs) as "
-                 "`single_file_config`, or convert the checkpoint to a diffusers folder") from exc
-    scheduler = DDIMScheduler.from_config(pipe.scheduler.config, **_DDIM_OVERRIDES)
-    return pipe.unet, pipe.vae, pipe.text_encoder, pipe.tokenizer, scheduler
+            f"could not load the checkpoint as {sf.FAMILIES[fam].title} with the config {config}: {exc}", path=path,
+            hint="if it is another model, pass --sd-config DIR with its diffusers config folder, or convert the "
+                 "checkpoint to a diffusers folder") from exc
+    return pipe.unet, pipe.vae, pipe.text_encoder, pipe.tokenizer, pipe.scheduler
 
 
 def load_stable_diffusion(path: str | os.PathLike, device: torch.device | str | None = None,
                           dtype: torch.dtype | None = None, cpu_offload: bool = False,
-                          attention_slicing: bool = True, single_file_config: str | os.PathLike | None = None
-                          ) -> StableDiffusion:
-    """Load SD from a local diffusers folder or .safetensors/.ckpt file (`local_files_only=True`).
+                          attention_slicing: bool = True, config: str | os.PathLike | None = None,
+                          family: str | None = None, prediction_type: str | None = None) -> StableDiffusion:
+    """Load SD from a local diffusers folder or .safetensors/.ckpt file (`local_files_only=True`, no network).
 
-    fp16 on CUDA (fp32 on CPU) unless `dtype` says otherwise. With `cpu_offload` the text encoder stays
-    on the CPU (used once per prompt) and the UNet visits the GPU only for its no-grad forward.
+    A single file is loaded with its family's shipped config (core.models.sd_single_file says how the family
+    is told), or `config` (a diffusers config folder); `family` and `prediction_type` override what the
+    checkpoint or folder says. fp16 on CUDA (fp32 on CPU) unless `dtype` says otherwise. With `cpu_offload`
+    the text encoder stays on the CPU (used once per prompt) and the UNet visits the GPU only for its forward.
     """
+    from diffusers import DDIMScheduler
+
     path = Path(path).expanduser()
     if not path.exists():
         raise ModelNotFoundError("the Stable Diffusion model path does not exist", path=path, hint=how_to_set("sd"))
+    if prediction_type is not None and prediction_type not in PREDICTION_TYPES:
+        raise ModelNotFoundError(f"unknown prediction type {prediction_type!r}", path=path,
+                                 hint=f"use one of: {', '.join(PREDICTION_TYPES)}")
     dev = get_device(str(device)) if device is not None else get_device()
     cuda = is_cuda(dev)
     if dtype is None:
@@ -169,10 +196,17 @@ def load_stable_diffusion(path: str | os.PathLike, device: torch.device | str | 
         if path.suffix.lower() not in SINGLE_FILE_SUFFIXES:
             raise ModelNotFoundError("not a Stable Diffusion checkpoint (expected .safetensors or .ckpt, "
                                      "or a diffusers folder)", path=path, hint=how_to_set("sd"))
-        unet, vae, text_encoder, tokenizer, scheduler = _load_single_file(path, dtype, single_file_config)
+        cfg = Path(config).expanduser() if config is not None else None
+        unet, vae, text_encoder, tokenizer, scheduler = _load_single_file(path, dtype, cfg, family, prediction_type)
     else:
         unet, vae, text_encoder, tokenizer, scheduler = _load_folder(path, dtype)
-
+    overrides = dict(_DDIM_OVERRIDES, **({"prediction_type": prediction_type} if prediction_type else {}))
+    scheduler = DDIMScheduler.from_config(scheduler.config, **overrides)
+    if scheduler.config.prediction_type not in PREDICTION_TYPES:
+        raise ModelNotFoundError(f"the model predicts {scheduler.config.prediction_type!r}, which score distillation "
+                                 f"here does not support", path=path,
+                                 hint=f"pass --prediction-type ({' | '.join(PREDICTION_TYPES)}) if its scheduler "
+                                      f"config is wrong, or use an SD 1.x/2.x model")
     return assemble(unet, vae, text_encoder, tokenizer, scheduler, dev, dtype, cpu_offload, attention_slicing, path)
 
 

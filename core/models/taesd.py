@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from core.errors import ModelNotFoundError, UserError
+from core.models.paths import cached_snapshot
 
 HINT = ("pass a local folder holding a diffusers AutoencoderTiny (config.json + diffusion_pytorch_model.safetensors, "
         "e.g. a download of madebyollin/taesd), or its model id when it is already in the Hugging Face cache")
@@ -26,7 +27,10 @@ def load_tiny_autoencoder(path_or_id: str | os.PathLike, device: torch.device,
     name = str(path_or_id)
     local = Path(name).expanduser()
     try:
-        folder = local if local.exists() else _cached_snapshot(name)
+        folder = local if local.exists() else cached_snapshot(name)
+        if folder is None:
+            raise ModelNotFoundError(f"no tiny autoencoder {name!r}: no such folder, and no such model id in the local "
+                                     "Hugging Face cache", path=local, hint=HINT)
         if not (folder / "config.json").is_file():
             raise ModelNotFoundError("not a tiny-autoencoder folder (no config.json)", path=folder, hint=HINT)
         ae = AutoencoderTiny.from_pretrained(str(folder), local_files_only=True, torch_dtype=dtype)
@@ -35,15 +39,6 @@ def load_tiny_autoencoder(path_or_id: str | os.PathLike, device: torch.device,
                                  path=local if local.exists() else None, hint=HINT) from exc
     ae.eval().requires_grad_(False)
     return ae.to(device)
-
-
-def _cached_snapshot(model_id: str) -> Path:
-    """The local snapshot folder of a model id in the Hugging Face cache ($HF_HUB_CACHE, $HF_HOME/hub, ~/.cache)."""
-    from huggingface_hub import snapshot_download
-
-    home = os.environ.get("HF_HOME") or os.path.join(os.path.expanduser("~"), ".cache", "huggingface")
-    cache = os.environ.get("HF_HUB_CACHE") or os.path.join(home, "hub")
-    return Path(snapshot_download(model_id, cache_dir=cache, local_files_only=True))
 
 
 def check_compatible(ae: torch.nn.Module, latent_channels: int, scale_factor: int) -> None:

@@ -27,13 +27,14 @@ def __getattr__(name: str):
 def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
                    sd_path: str | os.PathLike | None = None, settings: Mapping[str, Any] | None = None,
                    targets=None, device=None, cpu_offload: bool = False,
-                   single_file_config: str | os.PathLike | None = None, unet_precision: str = "auto",
-                   tiny_autoencoder: str | os.PathLike | None = None, channels_last: bool = False,
-                   **options) -> Guidance:
+                   unet_precision: str = "auto", tiny_autoencoder: str | os.PathLike | None = None,
+                   channels_last: bool = False, sd_config: str | os.PathLike | None = None,
+                   sd_family: str | None = None, prediction_type: str | None = None, **options) -> Guidance:
     """A guidance backend: 'sd' (Stable Diffusion from flag > env > settings) or 'analytic' (needs `targets`).
 
-    `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed, sds_resolution);
-    `unet_precision`, `tiny_autoencoder` and `channels_last` are SD's speed options (core.models.sd_speed).
+    `sd_config`, `sd_family`, `prediction_type` go to the SD loader (core.models.sd.load_stable_diffusion);
+    `unet_precision`, `tiny_autoencoder` and `channels_last` are SD's speed options (core.models.sd_speed);
+    `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed, sds_resolution).
     """
     if kind == "sd":
         from core.models.paths import resolve_model_path
@@ -42,7 +43,8 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
         from core.repaint.sds import SDSGuidance
 
         sd = load_stable_diffusion(resolve_model_path("sd", sd_path, settings), device=device,
-                                   cpu_offload=cpu_offload, single_file_config=single_file_config)
+                                   cpu_offload=cpu_offload, config=sd_config, family=sd_family,
+                                   prediction_type=prediction_type)
         apply_speed_options(sd, unet_precision, tiny_autoencoder, channels_last)
         return SDSGuidance(sd, prompt, negative_prompt, **options)
     if kind == "analytic":

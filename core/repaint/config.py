@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-UNMASK_REDUCTIONS = ("mean", "sum")
+UNMASK_REDUCTIONS = ("sum", "mean")  # paper Eq. unmask as written; as the official code reduces it
 OPTIMIZERS = ("paper", "official")
 
 
@@ -17,17 +17,22 @@ class RepaintConfig:
 
     steps: int = 300
     resolution: int | None = None  # render long side; None = training size capped at 128 (CPU) / 400 (CUDA)
-    lambda_unmask: float = 100.0  # paper Eq. s2 (official code: 100)
-    # Eq. unmask reduced as the official code does ("mean" over the kept pixels) or as the paper writes it
-    # ("sum" over rays): at lambda 100 the mean is ~40x weaker per pixel than the guidance (bench edit).
-    unmask_reduction: str = "mean"
-    # Weight of the CLIP background loss (paper Eq. clip); None = the guidance's own default
-    # (core.repaint.registry.clip_weight: the official 0.01 with Stable Diffusion, else 0). 0 loads no CLIP.
+    # Paper Eq. s2's weight on Eq. unmask, reduced as the paper writes it ("sum" over rays and channels) or as
+    # the official code does ("mean" over every value of the image, masked pixels zeroed: the sum / 3HW, so
+    # mean at 100 is sum at 100/3HW); objective.unmask_loss. The default holds the rest of the scene under a
+    # guidance that repaints it (bench edit "drift", demo 32 px, 80 steps: sum 10 drops it 0.08 dB and lets
+    # the edit gain 6.6 dB; sum 100 gains 6.0 dB; the old default, a mean at 100, dropped it 8.4 dB).
+    lambda_unmask: float = 10.0
+    unmask_reduction: str = "sum"
     lambda_clip: float | None = None
-    optimizer: str = "paper"  # 'paper': Adan 1e-3 decaying to 1e-4; 'official': 5e-3, 10x on the grid, constant
+    # Adan decaying lr x 0.1^(step / steps); 'paper': base 1e-3 (to 1e-4); 'official': 5e-3 with 10x on the grid,
+    # which converges within the few hundred steps a CPU affords (the paper runs 10000)
+    optimizer: str = "official"
     lr: float | None = None  # overrides the preset's base rate
     mask_dilation: int = 0  # pixels added around the mask (guidance and unmask loss both see the larger mask)
-    unmask_margin: int = 1  # pixels around the mask the unmask loss leaves free (its soft edges may change)
+    # Pixels around the (dilated) mask that Eq. unmask leaves free, so the object's soft, anti-aliased edge
+    # may change with it; 0 is the paper's and official code's 1(mask < 0.5) exactly.
+    unmask_margin: int = 1
     snapshot_every: int = 25  # steps between preview snapshots (0 = none)
     snapshot_view: int = 0
     seed: int = 0
@@ -57,3 +62,9 @@ class RepaintConfig:
     # SD's timestep draw: 'uniform' on [0.02, 0.98] T (official), or 'annealed': the upper bound falls to
     # 0.5 T over the run (threestudio's schedule; meant to need fewer steps, not measured here: no real weights)
     t_schedule: str = "uniform"
+    # Stable Diffusion loading (core.models.sd): a diffusers config folder for a single-file checkpoint (default:
+    # the shipped one of its detected family), the family (sd1 | sd2-base | sd2-768-v) and prediction type
+    # (epsilon | v_prediction) when the file or folder says otherwise or nothing.
+    sd_config: str | None = None
+    sd_family: str | None = None
+    sd_prediction_type: str | None = None

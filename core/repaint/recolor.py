@@ -51,6 +51,10 @@ def recolor(rgb: Tensor, color, mask: Tensor | None = None, mode: str = "shading
 class RecolorGuidance(TargetGuidance):
     """Targets: each training view with the masked pixels recoloured to `color` (shading kept)."""
 
+    # A recolour adds no geometry: opening the selection's 3D cells would let faint density there (kept out
+    # of the render by the occupancy grid until now) show in front of what the mask leaves out.
+    grow_region = False
+
     def __init__(self, images: list[Tensor], masks: list[Tensor], color, mode: str = "shading",
                  weight: float = 1.0):
         """images (H, W, 3) and masks (H, W) per training view, at the render resolution."""

@@ -84,7 +84,8 @@ def _sd(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
                           settings=settings, device=t.device, seed=t.cfg.seed,
                           unet_precision=t.cfg.sd_unet_precision, tiny_autoencoder=t.cfg.sd_tiny_autoencoder,
                           channels_last=t.cfg.sd_channels_last, sds_resolution=t.cfg.sds_resolution,
-                          t_schedule=t.cfg.t_schedule, total_steps=t.cfg.steps)
+                          t_schedule=t.cfg.t_schedule, total_steps=t.cfg.steps, sd_config=t.cfg.sd_config,
+                          sd_family=t.cfg.sd_family, prediction_type=t.cfg.sd_prediction_type)
 
 
 GUIDANCES: dict[str, GuidanceSpec] = {s.name: s for s in (

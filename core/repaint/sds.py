@@ -2,8 +2,10 @@
 
 Classifier-free guidance (scale 100), t ~ U[20, 980] of 1000, w(t) = 1 - alpha_bar_t, the render
 resized to the model's resolution (or a lower `sds_resolution`, a user's choice: 256 px costs ~1/4)
-and VAE-encoded with gradient; the UNet runs without gradient. With `profile` set, `stage_seconds` holds
-the last step's wall time per stage and `stage_cpu_seconds` this process's CPU time (bench sdcost).
+and VAE-encoded with gradient; the UNet runs without gradient. The UNet's output is read as its scheduler's
+`prediction_type` says: the noise (SD 1.x, 2.x base) or v (SD 2.x 768), which is turned into the noise
+before guidance. With `profile` set, `stage_seconds` holds the last step's wall time per stage and
+`stage_cpu_seconds` this process's CPU time (bench sdcost).
 """
 from __future__ import annotations
 
@@ -15,8 +17,19 @@ from torch import Tensor
 
 from core.device import synchronize
 from core.errors import UserError
-from core.models.sd import StableDiffusion
+from core.models.sd import PREDICTION_TYPES, StableDiffusion
 from core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
+
+
+def noise_from_prediction(pred: Tensor, noisy: Tensor, alpha_bar: Tensor | float, prediction_type: str) -> Tensor:
+    """The noise a UNet output stands for: itself for 'epsilon'; for 'v_prediction'
+    eps = sqrt(abar) v + sqrt(1 - abar) x_t (v = sqrt(abar) eps - sqrt(1 - abar) x0)."""
+    if prediction_type == "epsilon":
+        return pred
+    if prediction_type == "v_prediction":
+        ab = torch.as_tensor(alpha_bar, dtype=pred.dtype, device=pred.device)
+        return ab.sqrt() * pred + (1 - ab).sqrt() * noisy.to(pred.dtype)
+    raise ValueError(f"unsupported prediction_type {prediction_type!r}; supported: {', '.join(PREDICTION_TYPES)}")
 
 
 class SDSGuidance(Guidance):
@@ -77,9 +90,12 @@ class SDSGuidance(Guidance):
             t_batch = torch.full((latents.shape[0],), t, device=latents.device, dtype=torch.long)
             noisy = sd.scheduler.add_noise(latents.detach(), noise, t_batch)
             emb = self._embeddings.repeat_interleave(latents.shape[0], dim=0)
-            eps = sd.predict_noise(torch.cat([noisy, noisy]), torch.cat([t_batch, t_batch]), emb)
+            pred = sd.predict_noise(torch.cat([noisy, noisy]), torch.cat([t_batch, t_batch]), emb)
             self._tick("unet_forward")
-            eps_uncond, eps_cond = eps.float().chunk(2)  # fp32 from here on, whatever the UNet ran in
+            # fp32 from here on, whatever the UNet ran in
+            eps = noise_from_prediction(pred.float(), torch.cat([noisy, noisy]).float(), sd.alphas_cumprod[t],
+                                        sd.prediction_type)
+            eps_uncond, eps_cond = eps.chunk(2)
             eps_hat = eps_uncond + self.guidance_scale * (eps_cond - eps_uncond)
             grad = self.sampler.weight(t) * (eps_hat - noise.float())
         out = distillation_loss(latents, grad, t, self.clip_value, self.clip_norm)

@@ -34,10 +34,12 @@ from core.repaint.dilate import dilate
 from core.repaint.guidance import as_guidance
 from core.repaint.estimate import Estimate, Progress, estimate_repaint
 from core.repaint.region import mark_region_occupied, selection_region
+from core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss
 from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from core.train.checkpoint import Checkpoint, split_state
 from core.train.health import SpikeDetector
 from core.train.schedule import LRSchedule
+from core.train.stage1 import target_image
 
 CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
 
@@ -52,14 +54,6 @@ def default_resolution(width: int, height: int, device: torch.device) -> int:
 
 def _resize(img: np.ndarray, w: int, h: int, interp=cv2.INTER_AREA) -> np.ndarray:
     return img if img.shape[1] == w and img.shape[0] == h else cv2.resize(img, (w, h), interpolation=interp)
-
-
-def _composite(img: np.ndarray, bg: Tensor) -> Tensor:
-    """uint8 (H, W, 3|4) -> float (H, W, 3) over `bg` on its device."""
-    t = torch.from_numpy(np.ascontiguousarray(img)).to(bg.device).float() / 255.0
-    if t.shape[-1] == 4:
-        return t[..., :3] * t[..., 3:4] + bg * (1 - t[..., 3:4])
-    return t[..., :3]
 
 
 def edited_images(scene) -> list[np.ndarray]:
@@ -112,8 +106,11 @@ class RepaintTrainer:
             raise UserError(f"steps must be at least 1, got {self.cfg.steps}")
         if self.cfg.lambda_unmask < 0 or self.cfg.lambda_clip < 0:
             raise UserError("lambda_unmask and lambda_clip must not be negative")
-        if self.cfg.unmask_reduction not in ("mean", "sum"):
-            raise UserError(f"unknown unmask reduction {self.cfg.unmask_reduction!r}", hint="use mean or sum")
+        if self.cfg.unmask_reduction not in UNMASK_REDUCTIONS:
+            raise UserError(f"unknown unmask reduction {self.cfg.unmask_reduction!r}",
+                            hint=f"use one of: {', '.join(UNMASK_REDUCTIONS)}")
+        if self.cfg.unmask_margin < 0:
+            raise UserError(f"unmask_margin must not be negative, got {self.cfg.unmask_margin}")
         self.device = device if isinstance(device, torch.device) else (
             next(field.parameters()).device if device is None else get_device(device))
         self.on_snapshot = on_snapshot
@@ -128,7 +125,7 @@ class RepaintTrainer:
         self.clip = self._build_clip(clip_path)
 
         self.optimizer = self._make_optimizer()
-        self.schedule = LRSchedule("exp", 0.1) if self.cfg.optimizer == "paper" else LRSchedule("const")
+        self.schedule = LRSchedule("exp", 0.1)  # both presets: lr x 0.1^(step / steps)
         self.step_count = 0
         self.train_seconds = 0.0
         self.skipped_steps = 0
@@ -178,7 +175,7 @@ class RepaintTrainer:
         self.rays, self.images, self.masks, self.keep = [], [], [], []
         for i in range(n):
             w, h = int(cams.width[i]), int(cams.height[i])
-            img = _composite(_resize(np.asarray(split.images[i]), w, h), self.background)
+            img = target_image(_resize(np.asarray(split.images[i]), w, h), self.background)
             m = _resize(np.asarray(masks[i], np.float32), w, h) > 0.5
             m = torch.from_numpy(m).to(self.device).float()
             m = dilate(m, self.cfg.mask_dilation)
@@ -200,7 +197,7 @@ class RepaintTrainer:
     def edited_targets(self) -> list[Tensor]:
         """The scene's edited/ views at the edit resolution, (1, 3, H, W) each, moved `analytic_drift` toward
         DRIFT_TINT outside the mask (the analytic guidance's targets)."""
-        targets = [_composite(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
+        targets = [target_image(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
                    for im in edited_images(self.scene)]
         if self.cfg.analytic_drift > 0:
             tint = torch.tensor(DRIFT_TINT, device=self.device).view(1, 3, 1, 1)
@@ -248,14 +245,9 @@ class RepaintTrainer:
         return out["rgb"].reshape(h, w, 3).permute(2, 0, 1)[None]
 
     def unmask_loss(self, rgb: Tensor, view: int) -> Tensor:
-        """Paper Eq. unmask: squared error to the original image over the pixels outside the mask, summed over
-        rays (the paper) or averaged over the kept values (the official code), per `unmask_reduction`."""
+        """Paper Eq. unmask on training view `view`, reduced per `unmask_reduction` (objective.unmask_loss)."""
         target = self.images[view].permute(2, 0, 1)[None]
-        keep = self.keep[view][None, None]
-        total = (((rgb.float() - target) ** 2) * keep).sum()
-        if self.cfg.unmask_reduction == "sum":
-            return total
-        return total / (3 * keep.sum()).clamp_min(1.0)
+        return unmask_loss(rgb, target, self.keep[view][None, None], self.cfg.unmask_reduction)
 
     def step(self) -> dict:
         """One edit step on a random view; returns its losses and whether it was skipped."""
@@ -275,12 +267,11 @@ class RepaintTrainer:
             self.optimizer.zero_grad(set_to_none=True)
             if not skipped:
                 unmask = self.unmask_loss(rgb, view)
-                total = g["loss"].float() + self.cfg.lambda_unmask * unmask
                 info["unmask"] = float(unmask.detach())
-                if self.clip is not None:
-                    c = self.clip.loss(rgb, mask).float()
-                    total = total + self.cfg.lambda_clip * c.to(total.device)
+                c = self.clip.loss(rgb, mask) if self.clip is not None else None
+                if c is not None:
                     info["clip"] = float(c.detach())
+                total = stage2_loss(g["loss"], unmask, self.cfg.lambda_unmask, c, self.cfg.lambda_clip)
                 fl = self.guidance.field_loss(self.field, self.step_count)
                 if fl is not None:
                     total = total + fl
@@ -432,12 +423,12 @@ class RepaintTrainer:
             rgb = render_camera(self.field, self.grid, cams, i, opts)["rgb"].clamp(0, 1)
             m = torch.from_numpy(np.asarray(masks[i], bool)).to(self.device) if masks is not None else \
                 torch.zeros(rgb.shape[:2], dtype=torch.bool, device=self.device)
-            orig = _composite(np.asarray(data.images[i]), self.background)
+            orig = target_image(np.asarray(data.images[i]), self.background)
             d_out = ((rgb - orig) ** 2).sum(-1)
             se_out += float(d_out[~m].sum())
             n_out += 3 * float((~m).sum())
             if targets is not None:
-                tgt = _composite(np.asarray(targets[i]), self.background)
+                tgt = target_image(np.asarray(targets[i]), self.background)
                 se_in += float(((rgb - tgt) ** 2).sum(-1)[m].sum())
                 n_in += 3 * float(m.sum())
         self.field.train()

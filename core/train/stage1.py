@@ -657,7 +657,7 @@ def crop_box(i: int, width: int, height: int, side: int) -> tuple[int, int, int,
 
 def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
     """A uint8 (H, W, 3|4) image as float (H, W, 3) on the background's device, alpha composited over it."""
-    t = torch.as_tensor(np.asarray(image), device=background.device).float() / 255.0
+    t = torch.as_tensor(np.ascontiguousarray(image), device=background.device).float() / 255.0
     if t.shape[-1] == 4:
         return t[..., :3] * t[..., 3:4] + background * (1.0 - t[..., 3:4])
     return t[..., :3]

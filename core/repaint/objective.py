@@ -1,0 +1,38 @@
+"""The stage-2 objective of the paper: the unmask loss (Eq. unmask) and the repaint loss (Eq. s2).
+
+The guidance term (Eq. SDS) comes from a Guidance backend and the CLIP term (Eq. clip) from
+core.repaint.clip_loss; this module weighs them together. Plain functions on tensors, so each is
+tested against its written formula.
+"""
+from __future__ import annotations
+
+from torch import Tensor
+
+from core.repaint.config import UNMASK_REDUCTIONS
+
+
+def unmask_loss(rgb: Tensor, target: Tensor, keep: Tensor, reduction: str = "sum") -> Tensor:
+    """Paper Eq. unmask: squared error between render and original image on the kept (unmasked) pixels.
+
+    rgb, target (B, 3, H, W); keep (B|1, 1, H, W) is 1(mask < 0.5), less any margin the caller frees.
+    'sum' adds over rays and channels as the paper writes it; 'mean' averages over every value of the
+    image with the masked pixels zeroed, as the official code does (so it is the sum / (B * 3 * H * W)).
+    """
+    sq = ((rgb.float() - target.float()) * keep) ** 2
+    if reduction == "sum":
+        return sq.sum()
+    if reduction == "mean":
+        return sq.mean()
+    raise ValueError(f"unknown unmask reduction {reduction!r}; use one of {', '.join(UNMASK_REDUCTIONS)}")
+
+
+def stage2_loss(guidance: Tensor, unmask: Tensor, lambda_unmask: float, clip: Tensor | None = None,
+                lambda_clip: float = 0.0) -> Tensor:
+    """Paper Eq. s2 added to the guidance: L = L_SDS + lambda_unmask * L_unmask + lambda_clip * L_clip.
+
+    `guidance` is the backend's loss (its gradient is the SDS gradient); `clip` is None when not used.
+    """
+    total = guidance.float() + lambda_unmask * unmask.float().to(guidance.device)
+    if clip is not None:
+        total = total + lambda_clip * clip.float().to(guidance.device)
+    return total
