@@ -27,6 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="bench", metavar="NAME", required=True)
     for name, modname in _benchmarks():
         mod = importlib.import_module(modname)
+        if not hasattr(mod, "run"):  # a measurement module whose CLI driver lives in app/bench
+            continue
         bp = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(bp)
         bp.set_defaults(_bench_run=mod.run)
