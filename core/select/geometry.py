@@ -32,12 +32,12 @@ def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float
             jump = near - (2.0 * w - far)       # > 0: the neighbour is nearer than the line through p predicts
             jump2 = near - w                    # and nearer than p itself (a step, not a bend)
             e = (jump > rel * w) & (jump2 > 0.5 * rel * w)
-            # rolled-in borders compare against the opposite edge of the image: ignore them
+            # rolled-in borders compare against the opposite edge of the image: no edge on the border lines
             sl = [slice(None)] * 2
-            sl[axis] = slice(-1, None) if step == 1 else slice(0, 1)
+            sl[axis] = slice(-1, None)
             e[tuple(sl)] = False
-            sl[axis] = slice(0, 1) if step == 1 else slice(-1, None)
-            e[tuple(sl)] &= (near - w)[tuple(sl)] > rel * w[tuple(sl)]  # no pixel beyond: a plain step
+            sl[axis] = slice(0, 1)
+            e[tuple(sl)] = False
             edge |= e
     return edge | ~surface
 
@@ -118,8 +118,10 @@ def project_seeds(points: np.ndarray, depth: np.ndarray, cameras, view: int, tol
         return out
     uv, z = cameras.project(torch.from_numpy(points).to(cameras.c2w), int(view))
     uv, z = uv.cpu().numpy(), z.cpu().numpy()
+    front = (z > 0) & np.isfinite(uv).all(1)  # points behind the camera project nowhere
+    uv, z = uv[front], z[front]
     u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-    ok = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v, z = u[ok], v[ok], z[ok]
     seen = np.abs(depth[v, u] - z) < tol * z
     out[v[seen], u[seen]] = True
