@@ -125,9 +125,9 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
                     progress: Callable[[int, int], None] | None = None, parts=None) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
     (WS/masks) when given. `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
-    geometry.GeometryParts, default all: depth edges, seeded growth, holes, the voxel 3D clean-up)
-    seeded by the selection's positive patches in training views."""
-    from core.select.geometry import GeometryParts
+    geometry.GeometryParts, default DEFAULT_PARTS) seeded by the selection's positive patches in
+    training views."""
+    from core.select.geometry import DEFAULT_PARTS, GeometryParts
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
     cache = cache or ViewCache(field, grid, cameras)
@@ -141,7 +141,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
     seeds = [(p.view, p) for p in selection.patches if p.positive and 0 <= p.view < n]
-    parts = (parts or GeometryParts()) if do_cleanup and seeds else GeometryParts.none()
+    parts = (parts or DEFAULT_PARTS) if do_cleanup and seeds else GeometryParts.none()
     out = shaped_masks(sims, maps, cameras, seeds, t, parts)
     if workspace is not None:
         write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup),
