@@ -32,11 +32,14 @@ def presets() -> tuple[str, ...]:
 
 
 def parts_variants() -> dict:
-    """The geometry variants measured: all parts, none, and all but one (each part's gain)."""
+    """The geometry variants measured: the default (what select saves), all parts, none, and all but one
+    (each part's gain)."""
     from core.select.geometry import GeometryParts
 
+    from core.select.geometry import DEFAULT_PARTS
+
     full = GeometryParts()
-    out = {"all": full, "none": GeometryParts.none()}
+    out = {"default": DEFAULT_PARTS, "all": full, "none": GeometryParts.none()}
     for k in full.names():
         out[f"no_{k}"] = replace(full, **{k: False})
     return out
@@ -155,7 +158,7 @@ class Evaluator:
 
 
 def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
-    """The final figures of one field and patch: IoU at the automatic threshold (all geometry parts), at
+    """The final figures of one field and patch: IoU at the automatic threshold (default geometry parts), at
     the fixed 0.5, at the best of a sweep, without geometry, without each part, and as before this
     change (0.5 and the voxel clean-up only)."""
     from core.select.geometry import GeometryParts
@@ -163,13 +166,13 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
     variants = parts_variants()
     auto = ev.auto_threshold(patch)
     ts = tuple(sorted(set(THRESHOLDS) | {FIXED, auto}))
-    full, _ = ev.masks(patch, ts, variants["all"])
+    full, _ = ev.masks(patch, ts, variants["default"])
     plain, _ = ev.masks(patch, ts, variants["none"])
     by_t = {t: iou(full[t], gts) for t in ts}
     plain_t = {t: iou(plain[t], gts) for t in ts}
     best = max(THRESHOLDS, key=lambda t: by_t[t])
     best_plain = max(THRESHOLDS, key=lambda t: plain_t[t])
-    parts = {"all": by_t[auto], "none": plain_t[auto]}
+    parts = {"default": by_t[auto], "none": plain_t[auto]}
     for name, v in variants.items():
         if name not in parts:
             m, _ = ev.masks(patch, (auto,), v)
@@ -241,7 +244,7 @@ def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None
         for o in objects:
             g = [t == o for t in test_gt]
             auto = ev.auto_threshold(patches[o])
-            m3, _ = ev.masks(patches[o], (auto,), GeometryParts())
+            m3, _ = ev.masks(patches[o], (auto,), parts_variants()["default"])
             m2, _ = ev.masks(patches[o], (auto,), GeometryParts.none())
             final["objects"][str(o)] = {"iou": iou(m3[auto], g), "iou_no_geometry": iou(m2[auto], g),
                                         "auto_threshold": auto}
@@ -289,7 +292,7 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
         trainer.field.eval()
         ev = Evaluator(trainer.field, trainer.grid, train_cams, test_cams)
         auto = ev.auto_threshold(patch)
-        m3, _ = ev.masks(patch, (auto,), variants["all"])
+        m3, _ = ev.masks(patch, (auto,), variants["default"])
         m2, _ = ev.masks(patch, (auto,), variants["none"])
         trainer.field.train()
         curve.append({"step": trainer.step_count, "seconds": trainer.train_seconds, "auto_threshold": auto,
