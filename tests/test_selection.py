@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from core.errors import UserError, WorkspaceError
-from core.select import (DEFAULT_THRESHOLD, Patch, Selection, ViewCache, cosine_similarity, load_masks,
+from core.select import (Patch, Selection, ViewCache, cosine_similarity, load_masks,
                          masks_for_views, patch_query, similarity_map, threshold_mask, write_masks)
 from core.workspace.workspace import Workspace
 
