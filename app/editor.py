@@ -208,6 +208,8 @@ class EditorApp:
                 s.selection_busy = False
                 s.has_selection = True
                 self.viewport.upload_similarity(msg.value)
+                if msg.name == "select":
+                    selection_panel.take_auto_threshold(s, msg.value)
                 if s.view_mode not in ("similarity", "mask"):
                     s.view_mode = "mask"
             elif msg.name == "masks_for_all_views":
@@ -253,6 +255,7 @@ class EditorApp:
                         mode = "new"
                     self.state.selection_busy = True
                     self.events.append((time.perf_counter(), "patch_release", rect))
+                    self.state.select_rect = (rect, mode)
                     self.call("select", cam.cameras(*self.view_size), rect, mode)
                 self.worker.hold(False)  # after the select is queued: the worker runs commands before training
             return

@@ -51,6 +51,8 @@ class EditorState:
     view_mode: str = "rgb"
     tool: str = "navigate"  # or "select"
     threshold: float = 0.5
+    auto_threshold: float | None = None  # the last patch's automatic threshold; the slider starts there
+    select_rect: tuple | None = None  # (rect, mode) of the patch being selected
     has_selection: bool = False
     selection_busy: bool = False
     masks_done: int | None = None

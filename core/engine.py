@@ -331,7 +331,12 @@ class Engine:
                                            cleanup=False)  # a free view has no training-view seed for 3D clean-up
         self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
         self.masks = None
-        return _np(self.selection.similarity(feat))
+        similarity = _np(self.selection.similarity(feat))
+        if mode != "sub":  # saved with the selection; the editor computes the same value for its slider
+            from core.select.autothreshold import patch_auto_threshold
+
+            self.selection.auto_threshold = patch_auto_threshold(similarity, patch)
+        return similarity
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:
         """Start ('new') or extend ('add') the selection with a text query through the workspace's CLIP-aligned

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from core.errors import UserError, WorkspaceError
-from core.select import (DEFAULT_THRESHOLD, Patch, Selection, ViewCache, cosine_similarity, load_masks,
+from core.select import (Patch, Selection, ViewCache, cosine_similarity, load_masks,
                          masks_for_views, patch_query, similarity_map, threshold_mask, write_masks)
 from core.workspace.workspace import Workspace
 
@@ -357,7 +357,8 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
     assert _iou(masks, gts) > E2E_IOU
     assert all(np.array_equal(a, b) for a, b in zip(masks, load_masks(ws.masks_dir)))
     sel = Selection.load(ws)
-    assert sel.patches == [p] and sel.threshold == DEFAULT_THRESHOLD
+    # without --threshold, select uses (and saves) the patch's automatic threshold
+    assert sel.patches == [p] and sel.auto_threshold is not None and sel.threshold == sel.auto_threshold
 
 
 def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):

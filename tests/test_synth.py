@@ -207,3 +207,35 @@ def test_demo_scene_is_cached_and_written_atomically(tmp_path, monkeypatch):
     assert demo.demo_scene_path(16) == path
     assert (path / "train" / "r_0.png").stat().st_mtime_ns == stamp
     assert [p.name for p in tmp_path.iterdir()] == ["demo-16"]
+
+
+def _render_one(obj) -> np.ndarray:
+    """One object seen from above at 64 px: its straight RGB where it covers the pixel."""
+    from core.synth.raster import Rasterizer
+
+    c2w = np.eye(4)
+    c2w[:3, 3] = (0.0, 0.0, 2.0)  # OpenGL camera looking down -z at the origin
+    with Rasterizer(64, 64) as ras:
+        frame = ras.render([obj], c2w, 80.0, 80.0, 32.0, 32.0)
+    return frame.rgba[..., :3].astype(np.float32)[frame.mask > 0]
+
+
+def test_photo_like_materials_change_the_image_as_described():
+    from dataclasses import replace
+
+    from core.synth.presets import SceneObject
+
+    base = SceneObject("slab", "box", {"sx": 1.0, "sy": 1.0, "sz": 0.1}, (0.0, 0.0, 0.0), (0.6, 0.5, 0.4))
+    flat = _render_one(base)
+    grainy = _render_one(replace(base, grain=0.3))
+    shiny = _render_one(replace(base, specular=0.8))
+    text = _render_one(replace(base, texture="label", texture_scale=8.0, color2=(0.1, 0.1, 0.1)))
+    wood = _render_one(replace(base, texture="wood", texture_scale=4.0, color2=(0.3, 0.2, 0.1)))
+    assert flat.std(0).max() < 1.0, "a flat plain slab lit by distant lights is one colour"
+    assert grainy.std(0).max() > 5.0 and abs(grainy.mean() - flat.mean()) < 10.0  # zero-mean fine noise
+    assert shiny.max() > flat.max() + 40.0  # the highlight (light 0 is near the view direction from above)
+    assert (text.mean(1) < 60).mean() > 0.05 and (text.mean(1) > 100).mean() > 0.3  # dark print on a light base
+    assert wood.std(0).max() > 10.0
+    ell = _render_one(SceneObject("e", "ellipsoid", {"rx": 0.6, "ry": 0.3, "rz": 0.2}, (0.0, 0.0, 0.0),
+                                  (0.6, 0.5, 0.4)))
+    assert 0.3 < ell.shape[0] / flat.shape[0] < 0.7  # ellipse area pi*0.6*0.3 vs the slab's 1.0 (perspective)

@@ -31,7 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--sub", action="append", default=[], metavar="x0,y0,x1,y1",
                    help="a negative patch (repeatable): pixels closer to it than to every positive are dropped")
     p.add_argument("--threshold", type=float, default=None,
-                   help="similarity threshold in [0, 1] (default: the program's measured default)")
+                   help="similarity threshold in [0, 1] (default: chosen automatically from the patch's own "
+                        "similarity and the field's depth edges in its view; a text query uses 0.5)")
     p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
     p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
@@ -106,11 +107,12 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from core.select.autothreshold import selection_auto_threshold
     from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
     from core.select.selection import Selection
     from core.workspace.workspace import Workspace
 
-    threshold = check_threshold(DEFAULT_THRESHOLD if args.threshold is None else args.threshold)
+    threshold = None if args.threshold is None else check_threshold(args.threshold)
     patches = _patches(args)
     ws = Workspace.open(args.workspace)
     field, grid, header, scene = load_trained(ws, args.device)
@@ -122,7 +124,8 @@ def run(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     cache = ViewCache(field, grid, cams)
-    sel = Selection(threshold=threshold, cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
+    sel = Selection(threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
+                    cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
                     teacher=str(header.get("teacher") or ws.settings.get("teacher") or "default"))
     if args.text is not None:
         from core.teachers.text import workspace_text_query
@@ -132,6 +135,10 @@ def run(args: argparse.Namespace) -> int:
         feat = cache.get(args.view).feature
         for p in patches:
             sel.add_patch(feat, p)
+        sel.auto_threshold = selection_auto_threshold(sel, cache.get(args.view))
+        if threshold is None:
+            sel.threshold = sel.auto_threshold
+    threshold = sel.threshold
     names = list(scene.train.names)
     masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
     sel_path = sel.save(ws)
@@ -142,7 +149,8 @@ def run(args: argparse.Namespace) -> int:
 
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])
-    print(f"{_describe(args, patches)}, threshold {threshold:.2f}, 3D clean-up "
+    how = "automatic" if args.threshold is None and sel.auto_threshold is not None else "given"
+    print(f"{_describe(args, patches)}, threshold {threshold:.2f} ({how}), 3D clean-up "
           f"{'on' if sel.cleanup else 'off'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering "
           f"{100 * cover:.1f}% of pixels on average "
           f"({time.perf_counter() - t0:.1f} s)")

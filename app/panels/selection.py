@@ -26,6 +26,13 @@ def draw(app) -> None:
     # The threshold is a shader uniform: moving it redraws the mask in this frame, it does not re-render.
     _, s.threshold = imgui.slider_float("Threshold", s.threshold, 0.0, 1.0, "%.3f")
     remember_item(app, "threshold")
+    if s.auto_threshold is not None:
+        imgui.same_line()
+        if imgui.small_button(f"auto {s.auto_threshold:.2f}"):
+            s.threshold = s.auto_threshold
+        if imgui.is_item_hovered():
+            imgui.set_tooltip("the threshold chosen from this patch's own similarity (where the region grown "
+                              "from the patch stops growing or leaks); click to return to it")
     if not s.has_selection:
         imgui.text("nothing selected")
         return
@@ -36,6 +43,24 @@ def draw(app) -> None:
         app.call("masks_for_all_views", float(s.threshold))
     if s.masks_done is not None:
         imgui.text(f"masks for {s.masks_done} views saved")
+
+
+def take_auto_threshold(state, similarity) -> None:
+    """After a patch selection: compute its automatic threshold from the view's similarity map; the slider
+    moves to it for a new selection, and for an added/subtracted patch unless the user moved the slider."""
+    if state.select_rect is None:
+        return
+    from core.select.autothreshold import patch_auto_threshold
+
+    rect, mode = state.select_rect
+    state.select_rect = None
+    if mode == "sub":
+        return
+    auto = patch_auto_threshold(similarity, rect)
+    untouched = state.auto_threshold is None or abs(state.threshold - state.auto_threshold) < 1e-6
+    if mode == "new" or untouched:
+        state.threshold = auto
+    state.auto_threshold = auto
 
 
 def _draw_text_query(app) -> None:

@@ -122,12 +122,14 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
 
 def masks_for_views(field, grid, cameras, selection, threshold: float | None = None, workspace=None,
                     cleanup: bool | None = None, cache: ViewCache | None = None, names: list[str] | None = None,
-                    progress: Callable[[int, int], None] | None = None,
+                    progress: Callable[[int, int], None] | None = None, parts=None,
                     refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
-    (WS/masks) when given. `cleanup` (default: the selection's) applies the 3D clean-up of cleanup3d;
-    `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps the final masks."""
-    from core.select.cleanup3d import cleanup_masks
+    (WS/masks) when given. `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
+    geometry.GeometryParts, default DEFAULT_PARTS) seeded by the selection's positive patches in
+    training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
+    the final masks."""
+    from core.select.geometry import DEFAULT_PARTS, GeometryParts
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
     cache = cache or ViewCache(field, grid, cameras)
@@ -139,17 +141,37 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
         sims.append(selection.similarity(m.feature))
         if progress:
             progress(i + 1, n)
-    masks = [s > t for s in sims]
     do_cleanup = selection.cleanup if cleanup is None else cleanup
-    if do_cleanup:
-        seeds = [(p.view, p) for p in selection.patches if p.positive]
-        masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cameras, seeds)
-    out = [m.cpu().numpy().astype(bool) for m in masks]
+    seeds = [(p.view, p) for p in selection.patches if p.positive and 0 <= p.view < n]
+    parts = (parts or DEFAULT_PARTS) if do_cleanup and seeds else GeometryParts.none()
+    out = shaped_masks(sims, maps, cameras, seeds, t, parts)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
-        write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup)})
+        write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup),
+                                                      "geometry": parts.names()})
     return out
+
+
+def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list, threshold: float,
+                 parts) -> list[np.ndarray]:
+    """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
+    patches [(view, Patch)]; the one path the CLI, the editor and bench mask share."""
+    from core.select.autothreshold import patch_pixels
+    from core.select.cleanup3d import cleanup_masks
+    from core.select.geometry import geometric_masks
+
+    cams = cameras.to("cpu")
+    if parts.edges or parts.grow or parts.holes:
+        px = [(v, patch_pixels(tuple(sims[v].shape), p)) for v, p in seeds]
+        masks = [torch.from_numpy(m) for m in geometric_masks(
+            [s.float().cpu().numpy() for s in sims], [m.depth.numpy() for m in maps],
+            [m.opacity.numpy() for m in maps], cams, px, threshold, parts)]
+    else:
+        masks = [s.cpu() > threshold for s in sims]
+    if parts.cleanup3d and seeds:
+        masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cams, seeds)
+    return [m.cpu().numpy().astype(bool) for m in masks]
 
 
 def mask_png(mask: np.ndarray) -> bytes:

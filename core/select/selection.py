@@ -28,8 +28,9 @@ class Selection:
     positives: list[Tensor] = field(default_factory=list)  # (F,) query vectors, patches first then texts
     negatives: list[Tensor] = field(default_factory=list)
     texts: list[str] = field(default_factory=list)
-    threshold: float = DEFAULT_THRESHOLD
+    threshold: float = DEFAULT_THRESHOLD  # what the masks use: the automatic one unless the user chose one
     cleanup: bool = True
+    auto_threshold: float | None = None  # the automatic threshold of the queries (core.select.autothreshold)
     teacher: str = ""
     created: float = field(default_factory=time.time)
 
@@ -93,6 +94,7 @@ class Selection:
     # -- saving ----------------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return {"format": FORMAT_VERSION, "threshold": float(self.threshold), "cleanup": bool(self.cleanup),
+                "auto_threshold": None if self.auto_threshold is None else float(self.auto_threshold),
                 "teacher": self.teacher, "created": self.created, "texts": list(self.texts),
                 "patches": [p.to_dict() for p in self.patches],
                 "positives": [q.float().tolist() for q in self.positives],
@@ -107,6 +109,8 @@ class Selection:
                          negatives=[torch.tensor(q, dtype=torch.float32) for q in d["negatives"]],
                          texts=list(d.get("texts", [])), threshold=check_threshold(d["threshold"]),
                          cleanup=bool(d.get("cleanup", True)), teacher=str(d.get("teacher", "")),
+                         auto_threshold=None if d.get("auto_threshold") is None
+                         else check_threshold(d["auto_threshold"]),
                          created=float(d.get("created", 0.0)))
 
     def save(self, workspace, name: str = "current") -> Path:

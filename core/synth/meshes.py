@@ -53,6 +53,15 @@ def sphere(radius: float, segments: int = 64, rings: int = 32) -> Mesh:
     return np.concatenate([radius * n, n], 1).astype(np.float32), _grid_indices(rings, segments)
 
 
+def ellipsoid(rx: float, ry: float, rz: float, segments: int = 64, rings: int = 32) -> Mesh:
+    """Ellipsoid with semi-axes (rx, ry, rz) centred at the origin (a loaf, a lemon)."""
+    v, idx = sphere(1.0, segments, rings)
+    axes = np.array([rx, ry, rz], np.float32)
+    n = v[:, 3:] / axes
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    return np.concatenate([v[:, :3] * axes, n], 1).astype(np.float32), idx
+
+
 def box(sx: float, sy: float, sz: float) -> Mesh:
     """Axis-aligned box with side lengths (sx, sy, sz) centred at the origin (flat-shaded faces)."""
     half = np.array([sx, sy, sz]) / 2
@@ -117,7 +126,7 @@ def disc(radius: float, segments: int = 96) -> Mesh:
     return _fan(np.zeros(3), _circle(radius, 0.0, segments), np.array([0.0, 0.0, 1.0]))
 
 
-BUILDERS = {"sphere": sphere, "box": box, "cylinder": cylinder, "cone": cone, "torus": torus, "disc": disc}
+BUILDERS = {"sphere": sphere, "ellipsoid": ellipsoid, "box": box, "cylinder": cylinder, "cone": cone, "torus": torus, "disc": disc}
 
 
 def build(kind: str, **params) -> Mesh:

@@ -12,12 +12,13 @@ import numpy as np
 
 from core.synth import rigs
 
-TEXTURES = ("plain", "checker", "stripes", "noise")
+TEXTURES = ("plain", "checker", "stripes", "noise", "wood", "label")
 
 
 @dataclass(frozen=True)
 class SceneObject:
-    """One object: a primitive mesh placed by translation + yaw, with a Lambertian procedural material."""
+    """One object: a primitive mesh placed by translation + yaw, with a procedural material (Lambertian,
+    plus optional fine photographic grain and a specular highlight)."""
 
     name: str
     mesh: str  # a key of core.synth.meshes.BUILDERS
@@ -28,6 +29,8 @@ class SceneObject:
     texture_scale: float = 4.0  # pattern cycles per world unit
     color2: tuple[float, float, float] | None = None  # second texture colour; None = a darker `color`
     yaw: float = 0.0  # degrees about +z
+    grain: float = 0.0  # amplitude of fine multiplicative noise on the albedo (0 = none)
+    specular: float = 0.0  # strength of the white highlight (0 = matte)
 
     def second_color(self) -> tuple[float, float, float]:
         if self.color2 is not None:
@@ -182,6 +185,93 @@ def _replace() -> SceneSpec:
     return spec
 
 
+# The hard presets (issue 15): photo-like textures, supports of a similar colour, touching neighbours of the
+# same hue, highlights and clutter; each edits the object a user would drag a patch on.
+WOOD_DARK, WOOD_DARK2 = (0.42, 0.28, 0.17), (0.27, 0.17, 0.1)
+CRUST, CRUST2 = (0.78, 0.53, 0.27), (0.6, 0.37, 0.17)
+BOARD, BOARD2 = (0.74, 0.55, 0.33), (0.58, 0.4, 0.22)
+
+
+def _clutter(ring: float, z0: float = 0.0) -> list[SceneObject]:
+    """Small everyday objects around the scene's edge: a cluttered background of mixed colours."""
+    return [
+        SceneObject("mug", "cylinder", {"radius": 0.14, "height": 0.3}, (ring * 0.75, ring * 0.55, z0 + 0.15),
+                    (0.9, 0.9, 0.86), "stripes", 9.0, color2=(0.2, 0.35, 0.7), grain=0.1, specular=0.4),
+        SceneObject("bottle", "cylinder", {"radius": 0.11, "height": 0.6}, (-ring * 0.8, ring * 0.5, z0 + 0.3),
+                    (0.15, 0.45, 0.22), "noise", 12.0, grain=0.15, specular=0.7),
+        SceneObject("apple", "sphere", {"radius": 0.15}, (ring * 0.7, -ring * 0.6, z0 + 0.15), (0.75, 0.12, 0.1),
+                    "noise", 9.0, color2=(0.85, 0.6, 0.15), grain=0.2, specular=0.3),
+        SceneObject("tin", "box", {"sx": 0.28, "sy": 0.2, "sz": 0.12}, (-ring * 0.7, -ring * 0.7, z0 + 0.06),
+                    (0.25, 0.3, 0.6), "label", 16.0, color2=(0.9, 0.85, 0.7), yaw=30.0, grain=0.1),
+    ]
+
+
+def _bread() -> SceneSpec:
+    objs = [
+        SceneObject("table", "disc", {"radius": 1.7}, (0.0, 0.0, 0.0), WOOD_DARK, "wood", 3.0, color2=WOOD_DARK2,
+                    grain=0.15),
+        SceneObject("board", "box", {"sx": 1.5, "sy": 0.95, "sz": 0.08}, (0.0, 0.0, 0.04), BOARD, "wood", 5.0,
+                    color2=BOARD2, yaw=8.0, grain=0.2, specular=0.05),
+        SceneObject("loaf", "ellipsoid", {"rx": 0.5, "ry": 0.3, "rz": 0.22}, (0.05, 0.02, 0.3), CRUST, "noise", 5.0,
+                    color2=CRUST2, yaw=8.0, grain=0.3, specular=0.08),
+        SceneObject("knife", "box", {"sx": 0.55, "sy": 0.05, "sz": 0.02}, (0.1, -0.38, 0.09), (0.72, 0.72, 0.74),
+                    "plain", yaw=8.0, grain=0.05, specular=0.9),
+        *_clutter(1.25),
+    ]
+    return SceneSpec(
+        "bread", "bounded", objs,
+        Edit("recolor", "loaf", color=(0.35, 0.2, 0.1), description="the golden loaf becomes dark rye"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.25)), 0.75, opaque=False)
+
+
+def _lemon() -> SceneSpec:
+    lemon_y, box_y = (0.93, 0.8, 0.18), (0.95, 0.83, 0.22)
+    objs = [
+        SceneObject("table", "disc", {"radius": 1.7}, (0.0, 0.0, 0.0), (0.8, 0.78, 0.72), "noise", 2.5,
+                    color2=(0.7, 0.66, 0.6), grain=0.15),
+        SceneObject("tray", "box", {"sx": 1.8, "sy": 1.2, "sz": 0.06}, (0.0, 0.0, 0.03), (0.63, 0.64, 0.66),
+                    "noise", 8.0, color2=(0.52, 0.53, 0.56), grain=0.12, specular=0.6),
+        SceneObject("lemon", "ellipsoid", {"rx": 0.3, "ry": 0.22, "rz": 0.22}, (0.12, -0.1, 0.28), lemon_y,
+                    "noise", 10.0, color2=(0.86, 0.7, 0.12), grain=0.3, specular=0.35),
+        # a box of the same yellow with printed text, touching the lemon's side
+        SceneObject("box", "box", {"sx": 0.55, "sy": 0.5, "sz": 0.7}, (-0.455, -0.05, 0.41), box_y, "label", 9.0,
+                    color2=(0.55, 0.12, 0.08), grain=0.1),
+        SceneObject("orange", "sphere", {"radius": 0.2}, (0.6, 0.4, 0.26), (0.95, 0.55, 0.1), "noise", 12.0,
+                    color2=(0.85, 0.45, 0.08), grain=0.3, specular=0.3),
+        *_clutter(1.35),
+    ]
+    return SceneSpec(
+        "lemon", "bounded", objs,
+        Edit("recolor", "lemon", color=(0.3, 0.75, 0.2), description="the lemon becomes a lime"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.3)), 0.75, opaque=False)
+
+
+def _toys() -> SceneSpec:
+    can_red = (0.82, 0.12, 0.1)
+    objs = [
+        SceneObject("rug", "disc", {"radius": 1.6}, (0.0, 0.0, 0.0), (0.45, 0.5, 0.62), "noise", 7.0,
+                    color2=(0.35, 0.38, 0.5), grain=0.25),
+        SceneObject("can", "cylinder", {"radius": 0.22, "height": 0.62}, (0.0, 0.0, 0.31), can_red, "label", 10.0,
+                    color2=(0.95, 0.93, 0.88), grain=0.08, specular=0.5),
+        # a red toy block touching the can (same hue, another texture)
+        SceneObject("block", "box", {"sx": 0.32, "sy": 0.32, "sz": 0.32}, (0.38, 0.0, 0.16), (0.85, 0.15, 0.12),
+                    "plain", grain=0.1, yaw=10.0, specular=0.2),
+        SceneObject("duck", "sphere", {"radius": 0.17}, (-0.33, 0.25, 0.17), (0.95, 0.82, 0.15), "plain",
+                    grain=0.1, specular=0.4),
+        SceneObject("cone", "cone", {"radius": 0.16, "height": 0.4}, (-0.15, -0.45, 0.2), (0.15, 0.35, 0.85),
+                    "stripes", 10.0, grain=0.1),
+        SceneObject("ring", "torus", {"major": 0.2, "minor": 0.07}, (0.5, 0.5, 0.07), (0.55, 0.2, 0.75),
+                    "checker", 12.0, grain=0.1),
+        SceneObject("ball", "sphere", {"radius": 0.12}, (0.62, -0.35, 0.12), (0.2, 0.7, 0.3), "checker", 14.0,
+                    grain=0.1, specular=0.5),
+        *_clutter(1.2),
+    ]
+    return SceneSpec(
+        "toys", "bounded", objs,
+        Edit("recolor", "can", color=(0.15, 0.35, 0.85), description="the red printed can becomes blue"),
+        rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.25)), 0.75, opaque=False)
+
+
 PRESETS: dict[str, tuple[str, Callable[[], SceneSpec]]] = {
     "demo": ("four distinct-coloured primitives on a checker floor, 360 views, transparent background", _demo),
     "similar": ("four similar red primitives told apart by texture (checker, stripes, noise, plain)", _similar),
@@ -189,6 +279,9 @@ PRESETS: dict[str, tuple[str, Callable[[], SceneSpec]]] = {
     "forward": ("LLFF-like forward-facing capture of objects before a textured wall; opaque", _forward),
     "room360": ("360-degree capture inside a textured room, every pixel has a surface; opaque", _room360),
     "replace": ("the demo layout whose edited variant replaces the cube by a cone", _replace),
+    "bread": ("hard: a grainy loaf on a wooden board of a similar brown, clutter around", _bread),
+    "lemon": ("hard: a lemon touching a yellow printed box on a shiny metal tray, clutter around", _lemon),
+    "toys": ("hard: a can with a printed label touching a red block, among toys on a rug", _toys),
 }
 
 

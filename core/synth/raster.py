@@ -1,6 +1,8 @@
 """Offscreen rasterizer (moderngl, standalone EGL context) for the synthetic scenes.
 
-Colour: Lambert + ambient shading of procedural textures, supersampled 3x3 and box-filtered.
+Colour: Lambert + ambient shading of procedural textures (checker, stripes, noise, wood grain, printed
+text), optional fine photographic grain and a Blinn-Phong specular highlight, supersampled 3x3 and
+box-filtered.
 Ground truth: z-depth (-z in camera coordinates, from the interpolated vertex position, float32) and
 the object id, both taken from the centre subsample of each 3x3 block, which is exactly the pixel
 centre (u + 0.5, v + 0.5), so they are not antialiased.
@@ -25,6 +27,7 @@ uniform mat3 normal_mat;
 in vec3 in_pos;
 in vec3 in_normal;
 out vec3 v_obj;
+out vec3 v_obj_normal;
 out vec3 v_world;
 out vec3 v_normal;
 out float v_zdepth;
@@ -32,6 +35,7 @@ void main() {
     vec4 w = model * vec4(in_pos, 1.0);
     vec4 c = view * w;
     v_obj = in_pos;
+    v_obj_normal = in_normal;
     v_world = w.xyz;
     v_normal = normal_mat * in_normal;
     v_zdepth = -c.z;
@@ -43,14 +47,18 @@ _FRAG = """
 #version 330
 uniform vec3 color1;
 uniform vec3 color2;
-uniform int tex_kind;       // 0 plain, 1 checker, 2 stripes, 3 noise
+uniform int tex_kind;       // 0 plain, 1 checker, 2 stripes, 3 noise, 4 wood, 5 label (printed text)
+uniform int uv_cylinder;    // label text wraps around z (cylinders) instead of lying on the faces
 uniform float tex_scale;
+uniform float grain;        // amplitude of fine multiplicative noise (photographic texture)
+uniform float specular;     // strength of the white Blinn-Phong highlight
 uniform vec3 tex_offset;
 uniform float obj_id;
 uniform vec3 cam_pos;
 uniform vec3 light_dir0;
 uniform vec3 light_dir1;
 in vec3 v_obj;
+in vec3 v_obj_normal;
 in vec3 v_world;
 in vec3 v_normal;
 in float v_zdepth;
@@ -78,6 +86,24 @@ float value_noise(vec3 p) {
                mix(mix(n001, n101, f.x), mix(n011, n111, f.x), f.y), f.z);
 }
 
+// Printed text: lines of 3x5-dot glyphs with word gaps, in (character, line) units.
+float glyphs(vec2 uv) {
+    vec2 cell = floor(uv);
+    vec2 f = fract(uv);
+    if (hash(ivec3(int(cell.x), int(cell.y), 7)) < 0.2) return 0.0;
+    ivec2 px = ivec2(floor(vec2((f.x - 0.1) / 0.8 * 3.0, (f.y - 0.2) / 0.6 * 5.0)));
+    if (px.x < 0 || px.x > 2 || px.y < 0 || px.y > 4) return 0.0;
+    return step(0.45, hash(ivec3(int(cell.x), int(cell.y), 11 + px.x + 3 * px.y)));
+}
+
+// Label coordinates: around z for cylinders, else the plane of the face's dominant normal axis.
+vec2 label_uv(vec3 p) {
+    vec3 a = abs(v_obj_normal);
+    if (uv_cylinder == 1 && a.z < 0.7) return vec2(atan(v_obj.y, v_obj.x) * length(v_obj.xy), v_obj.z) * tex_scale;
+    if (a.z >= a.x && a.z >= a.y) return p.xy;
+    return a.x >= a.y ? p.yz : p.xz;
+}
+
 float pattern(vec3 p) {
     if (tex_kind == 1) {
         ivec3 c = ivec3(floor(p));
@@ -90,6 +116,19 @@ float pattern(vec3 p) {
         float n = 0.55 * value_noise(p) + 0.3 * value_noise(2.03 * p) + 0.15 * value_noise(4.11 * p);
         return smoothstep(0.35, 0.65, n);
     }
+    if (tex_kind == 4) {   // wood: growth rings around the x axis, warped, with fibres along x
+        float r = length(p.yz) + 0.6 * value_noise(p * vec3(0.3, 1.5, 1.5));
+        float rings = smoothstep(0.2, 0.8, abs(fract(r) * 2.0 - 1.0));
+        float fibre = value_noise(p * vec3(0.8, 14.0, 14.0));
+        return clamp(0.75 * rings + 0.45 * (fibre - 0.5), 0.0, 1.0);
+    }
+    if (tex_kind == 5) {   // label: a heading line of large glyphs, a coloured band, then small text
+        vec2 uv = label_uv(p);
+        float line = fract(uv.y / 6.0) * 6.0;
+        if (line < 1.0) return 1.0;                                  // band
+        if (line < 2.8) return glyphs(vec2(uv.x * 0.8, (line - 1.0) / 1.8)); // heading
+        return glyphs(vec2(uv.x * 2.2, (line - 2.8) * 1.6));          // body text
+    }
     return 0.0;
 }
 
@@ -98,7 +137,16 @@ void main() {
     if (dot(n, cam_pos - v_world) < 0.0) n = -n;   // two-sided: room walls are seen from inside
     float shade = 0.35 + 0.55 * max(dot(n, light_dir0), 0.0) + 0.2 * max(dot(n, light_dir1), 0.0);
     vec3 albedo = mix(color1, color2, pattern(v_obj * tex_scale + tex_offset));
-    out_color = vec4(min(albedo * shade, vec3(1.0)), 1.0);
+    if (grain > 0.0) {
+        float g = 0.6 * value_noise(v_obj * 45.0 + tex_offset) + 0.4 * value_noise(v_obj * 110.0);
+        albedo *= 1.0 + grain * (2.0 * g - 1.0);
+    }
+    vec3 rgb = albedo * shade;
+    if (specular > 0.0) {
+        vec3 h = normalize(light_dir0 + normalize(cam_pos - v_world));
+        rgb += specular * pow(max(dot(n, h), 0.0), 48.0);
+    }
+    out_color = vec4(min(rgb, vec3(1.0)), 1.0);
     out_gt = vec2(v_zdepth, obj_id);
 }
 """
@@ -252,6 +300,9 @@ class Rasterizer:
             p["color2"].value = tuple(float(c) for c in obj.second_color())
             p["tex_kind"].value = TEXTURES.index(obj.texture)
             p["tex_scale"].value = float(obj.texture_scale)
+            p["uv_cylinder"].value = int(obj.mesh == "cylinder")
+            p["grain"].value = float(obj.grain)
+            p["specular"].value = float(obj.specular)
             p["tex_offset"].value = (0.137 + 0.31 * k, 0.271, 0.419)  # keeps pattern edges off flat faces
             p["obj_id"].value = float(ids[k] if ids is not None else k + 1)
             self._vao(obj).render(moderngl.TRIANGLES)

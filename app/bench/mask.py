@@ -1,0 +1,107 @@
+"""`repaint-nerf bench mask`: the CLI driver of core/bench/mask.py (options, printing, JSON and montage PNG).
+
+Per scene: mask IoU at the automatic threshold (`final.iou`), at the fixed 0.5, at the best threshold and
+the automatic threshold's value; with and without each geometry part; `--teacher` picks the teacher.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+HELP = ("mask IoU of patch selections against ground truth: automatic vs fixed vs best threshold, each "
+        "geometry part, vs training steps")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from core.bench.mask import presets
+
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--scene", default=None, help="a scene folder with gt/objects.json and gt/ masks")
+    src.add_argument("--preset", default="demo", choices=(*presets(), "all"), help="synthetic preset (default demo)")
+    obj = p.add_mutually_exclusive_group()
+    obj.add_argument("--object", type=int, default=None, help="object id (default: edited_object_id)")
+    obj.add_argument("--all-objects", action="store_true", help="also report every object's final IoU")
+    p.add_argument("--teacher", default="default",
+                   help="feature teacher: 'default' (weight-free) or a model path the teacher factory loads")
+    p.add_argument("--steps", type=int, default=2000, help="training steps (the paper's ablation: 2000)")
+    p.add_argument("--evals", type=int, default=5, help="points on the IoU curve (geometric in steps)")
+    p.add_argument("--size", type=int, default=128,
+                   help="image size of generated presets (default 128: at 64 the thin pole is ~1 px wide)")
+    p.add_argument("--views", type=int, default=24, help="training views of generated presets")
+    p.add_argument("--test-views", type=int, default=8, help="test views of generated presets")
+    p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
+    p.add_argument("--no-depth-run", action="store_true", help="skip the run without depth supervision")
+    p.add_argument("--feature-head", default=None, choices=("separate", "trunk"),
+                   help="feature head design (default: the field's FieldConfig default)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", default="bench_mask.json", help="output JSON path")
+    p.add_argument("--png", default=None, help="montage PNG (default: beside the JSON)")
+    p.add_argument("--device", default=None, help="cpu, cuda, cuda:1")
+
+
+def run(args: argparse.Namespace) -> int:
+    from core.bench.mask import MaskBenchConfig, bench_scene, presets, summarize
+    from core.device import describe, get_device
+    from core.errors import UserError
+
+    if args.steps < 1 or args.evals < 1:
+        raise UserError("--steps and --evals must be at least 1")
+    cfg = MaskBenchConfig(steps=args.steps, evals=args.evals, rays=args.rays, no_depth_run=args.no_depth_run,
+                          feature_head=args.feature_head, seed=args.seed, object=args.object,
+                          all_objects=args.all_objects, teacher=args.teacher)
+    device = get_device(args.device)
+    out = Path(args.json)
+    png = Path(args.png) if args.png else out.with_suffix(".png")
+    results, rows = {}, []
+    with tempfile.TemporaryDirectory(prefix="bench_mask_") as tmp:
+        if args.scene:
+            root = Path(args.scene)
+            if not (root / "gt" / "objects.json").is_file():
+                raise UserError("scene has no gt/objects.json (ground-truth masks are needed)", root,
+                                "use a scene written by `repaint-nerf make-scene`")
+            items = [(root.name, lambda r=root: r)]
+        else:
+            from core.synth.generate import make_scene
+
+            names = presets() if args.preset == "all" else (args.preset,)
+            items = [(n, lambda n=n: make_scene(n, Path(tmp) / n, size=args.size, views=args.views, seed=args.seed,
+                                                test_views=args.test_views)) for n in names]
+        for name, make in items:
+            res, row = bench_scene(make(), Path(tmp) / f"ws_{name}", cfg, device, log=lambda m: print(m, flush=True))
+            results[name] = res
+            rows.append(row)
+            print(line(name, res), flush=True)
+    doc: dict = {"benchmark": "mask", "device": describe(device), "teacher": args.teacher, "steps": args.steps,
+                 "timing_note": "CPU wall-clock on a shared machine: rough"}
+    if len(results) == 1:
+        first = next(iter(results.values()))
+        doc.update({k: first[k] for k in ("curve", "final", "patch_to_mask_ms", "feature_mb_per_image")})
+        doc["scene"] = first
+    else:
+        doc.update(summarize(results))
+        doc["presets"] = results
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    if rows:
+        width = max(r.shape[1] for r in rows)
+        img = np.concatenate([np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows], 0)
+        png.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(png), img[..., ::-1])
+    print(f"wrote {out} and {png}")
+    return 0
+
+
+def line(name: str, res: dict) -> str:
+    """One scene's summary line: auto / fixed / best, no geometry, each part's IoU, timing."""
+    f = res["final"]
+    parts = " ".join(f"{k}={v:.3f}" for k, v in f["parts"].items())
+    return (f"{name:9s} iou={f['iou']:.3f} at auto {f['auto_threshold']:.2f} | fixed 0.5 {f['iou_fixed']:.3f} | "
+            f"best {f['best_iou']:.3f}@{f['best_threshold']:.2f} | no geometry {f['no_geometry']['iou']:.3f} "
+            f"(best {f['no_geometry']['best_iou']:.3f}) | before {f['iou_before']:.3f} | {parts} | "
+            f"step {res['curve'][-1]['step']} ({res['curve'][-1]['seconds']:.0f} s), "
+            f"{res['patch_to_mask_ms']:.1f} ms patch->mask ({res['auto_threshold_ms']:.1f} auto)")

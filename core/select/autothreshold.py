@@ -1,0 +1,167 @@
+"""The automatic threshold of one query (issue 15), chosen from that query's own evidence.
+
+The paper's mask is `cos(F_patch, F(x)) > alpha` with one alpha for every scene; measured on photo-like
+scenes the best alpha ran from 0.2 to 0.85. The evidence used here: the region grown from the patch's
+pixels through `similarity > t` (and, given a barrier such as the field's depth edges, not across it),
+as t falls. Its area stays nearly flat while t sweeps across the gap between the object and what
+surrounds it (a plateau), and jumps where the region leaks into a neighbour or the surface the object
+rests on. The threshold is the middle of the plateau just above the largest jump when there is one
+(the area at least doubles within `JUMP_WINDOW`), else the middle of the longest plateau.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+
+GRID = np.round(np.arange(0.02, 0.985, 0.01), 2)  # thresholds tried (similarities of one query)
+JUMP_WINDOW = 2  # grid steps each side: a leak doubles the area within +-0.02
+JUMP_RATIO = 2.0
+PLATEAU_WINDOW = 2  # grid steps each side for the flatness test
+PLATEAU_RATIO = 1.1  # flat: the area changes by under 10% across the window
+FALLBACK = 0.5  # no usable evidence (an empty or constant map)
+MIN_REGION = 2.0  # a plateau is a region of at least twice the patch's pixels
+
+
+@dataclass(frozen=True)
+class AutoThreshold:
+    """The chosen threshold and the evidence: the grid, the grown areas, the jump (or None)."""
+
+    value: float
+    thresholds: np.ndarray
+    areas: np.ndarray
+    jump: float | None
+
+
+def region_areas(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
+                 thresholds: np.ndarray = GRID) -> np.ndarray:
+    """Pixels of the region grown from `seeds` through `similarity > t` (not across `barrier`), per t."""
+    s = np.asarray(similarity, np.float32)
+    seeds = np.asarray(seeds, bool)
+    free = np.ones(s.shape, bool) if barrier is None else ~np.asarray(barrier, bool)
+    seed_idx = np.flatnonzero(seeds & free)
+    out = np.zeros(len(thresholds), np.int64)
+    if not seed_idx.size:
+        return out
+    for k, t in enumerate(thresholds):  # as geometry.grow, with the areas read from the component stats
+        allowed = (((s > t) | seeds) & free).astype(np.uint8)
+        _, lab, stats, _ = cv2.connectedComponentsWithStats(allowed, connectivity=4)
+        keep = np.unique(lab.reshape(-1)[seed_idx])
+        out[k] = int(stats[keep[keep > 0], cv2.CC_STAT_AREA].sum())
+    return out
+
+
+def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
+    """[start, end) index ranges where `flags` is True."""
+    out, start = [], None
+    for i, f in enumerate(list(flags) + [False]):
+        if f and start is None:
+            start = i
+        elif not f and start is not None:
+            out.append((start, i))
+            start = None
+    return out
+
+
+def choose_threshold(thresholds: np.ndarray, areas: np.ndarray, seed_area: int = 1) -> tuple[float, float | None]:
+    """(threshold, threshold of the leak or None) from an area curve (areas non-increasing in t).
+
+    Plateaus count only where the region is more than the patch itself (`MIN_REGION` x `seed_area`): as t
+    nears 1 only the patch is left, and the fall from the object to the patch is growth, not a leak. A
+    jump counts as a leak only with a plateau right above it (a whole object, then more).
+    """
+    a = np.maximum(np.asarray(areas, np.float64), 1.0)
+    n = len(a)
+    if n < 2 * PLATEAU_WINDOW + 1:
+        return FALLBACK, None
+    lo = lambda i, k: a[max(i - k, 0)]  # noqa: E731  the area at a lower threshold (larger region)
+    hi = lambda i, k: a[min(i + k, n - 1)]  # noqa: E731
+    ratio = np.array([lo(i, JUMP_WINDOW) / hi(i, JUMP_WINDOW) for i in range(n)])
+    flat = np.array([lo(i, PLATEAU_WINDOW) / hi(i, PLATEAU_WINDOW) < PLATEAU_RATIO for i in range(n)])
+    flat &= a >= MIN_REGION * max(int(seed_area), 1)
+    runs = _runs(flat)
+    for j in np.argsort(-ratio, kind="stable"):
+        if ratio[j] < JUMP_RATIO:
+            break
+        above = [r for r in runs if j < r[0] <= j + 2 * JUMP_WINDOW + 4]
+        if above:
+            s, e = max(above, key=lambda r: r[1] - r[0])
+            return float(thresholds[(s + e - 1) // 2]), float(thresholds[j])
+    if not runs:
+        return FALLBACK, None
+    s, e = max(runs, key=lambda r: (r[1] - r[0], r[0]))
+    return float(thresholds[(s + e - 1) // 2]), None
+
+
+def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
+                   thresholds: np.ndarray = GRID) -> AutoThreshold:
+    """The automatic threshold of a query from its similarity map (H, W) in one view, the query's own
+    pixels there (`seeds`, bool (H, W): the patch) and optional barrier pixels (depth edges, no surface)."""
+    seeds = np.asarray(seeds, bool)
+    areas = region_areas(similarity, seeds, barrier, thresholds)
+    value, jump = choose_threshold(thresholds, areas, int(seeds.sum()))
+    return AutoThreshold(value, np.asarray(thresholds), areas, jump)
+
+
+def patch_pixels(shape: tuple[int, int], rect) -> np.ndarray:
+    """Bool (H, W) of a patch: a `Patch` in pixels, or (x0, y0, x1, y1) in image fractions (the editor's drag)."""
+    h, w = int(shape[0]), int(shape[1])
+    out = np.zeros((h, w), bool)
+    if hasattr(rect, "x0"):
+        out[max(rect.y0, 0):rect.y1, max(rect.x0, 0):rect.x1] = True
+        return out
+    x0, y0, x1, y1 = (float(v) for v in rect)
+    x0, x1 = sorted((x0, x1))
+    y0, y1 = sorted((y0, y1))
+    px0, py0 = int(np.floor(x0 * w)), int(np.floor(y0 * h))
+    out[py0:max(py0 + 1, int(np.ceil(y1 * h))), px0:max(px0 + 1, int(np.ceil(x1 * w)))] = True
+    return out
+
+
+def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: int = 128) -> float:
+    """The automatic threshold of a patch query in the view it was drawn in: `similarity` (H, W), `patch`
+    (a `Patch` in pixels, or image fractions), and, when given, that view's rendered z-depth and opacity,
+    whose depth edges bound the grown region. Maps larger than `max_side` are evaluated downsampled
+    (the areas only need their shape: ~10 ms at 128 px)."""
+    s = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
+    return patch_auto_threshold_px(s, patch_pixels(s.shape, patch), depth, opacity, max_side).value
+
+
+def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128):
+    """`patch_auto_threshold` with the seed pixels given as a bool (H, W) mask; returns the AutoThreshold."""
+    from core.select.geometry import MIN_OPACITY, depth_edges
+
+    s = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
+    seeds = np.asarray(seeds, bool)
+    z = None if depth is None else np.asarray(depth.cpu() if hasattr(depth, "cpu") else depth, np.float32)
+    o = None if opacity is None else np.asarray(opacity.cpu() if hasattr(opacity, "cpu") else opacity, np.float32)
+    h, w = s.shape
+    f = max_side / float(max(h, w))
+    if f < 1.0:
+        size = (max(1, int(round(w * f))), max(1, int(round(h * f))))
+        s = cv2.resize(s, size, interpolation=cv2.INTER_AREA)
+        small = cv2.resize(seeds.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        if not small.any():  # a patch thinner than a downsampled pixel: keep its centre
+            ys, xs = np.nonzero(seeds)
+            small[min(int(ys.mean() * f), size[1] - 1), min(int(xs.mean() * f), size[0] - 1)] = True
+        seeds = small
+        z = None if z is None else cv2.resize(z, size, interpolation=cv2.INTER_NEAREST)
+        o = None if o is None else cv2.resize(o, size, interpolation=cv2.INTER_NEAREST)
+    if z is not None:
+        barrier = depth_edges(z, o)
+    else:
+        barrier = None if o is None else o <= MIN_OPACITY
+    return auto_threshold(s, seeds, barrier)
+
+
+def selection_auto_threshold(selection, maps) -> float:
+    """The automatic threshold of a selection's positive patches, in the training view they were drawn
+    in (`maps`: that view's ViewMaps: features, depth, opacity); their union seeds the region."""
+    sim = selection.similarity(maps.feature).float().cpu().numpy()
+    seeds = np.zeros(sim.shape, bool)
+    for p in selection.patches:
+        if p.positive:
+            seeds |= patch_pixels(sim.shape, p)
+    return patch_auto_threshold_px(sim, seeds, maps.depth, maps.opacity).value

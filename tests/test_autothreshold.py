@@ -1,0 +1,208 @@
+"""The automatic threshold (core.select.autothreshold) and the geometry in masks (core.select.geometry)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from core.scene.cameras import Cameras, look_at
+from core.select.autothreshold import auto_threshold, choose_threshold, patch_auto_threshold, patch_pixels
+from core.select.geometry import GeometryParts, depth_edges, fill_holes, geometric_masks, grow
+
+
+def _iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def _disc(h: int, w: int, cy: float, cx: float, r: float) -> np.ndarray:
+    yy, xx = np.mgrid[:h, :w]
+    return (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+
+
+def test_two_clear_modes_give_a_threshold_between_them():
+    rng = np.random.default_rng(0)
+    obj = _disc(96, 96, 48, 48, 20)
+    sim = np.where(obj, 0.85, 0.25) + rng.normal(0.0, 0.03, obj.shape)
+    seeds = patch_pixels(obj.shape, (0.45, 0.45, 0.55, 0.55))
+    a = auto_threshold(sim, seeds)
+    assert 0.4 < a.value < 0.75, a.value
+    assert _iou(sim > a.value, obj) > 0.97
+
+
+def test_support_of_similar_colour_touching_the_object_is_left_out():
+    """The object (0.95) rests on a support (0.72, touching it) amid clutter (0.2): the grown region jumps
+    where it leaks onto the support, and the threshold stays above that jump."""
+    rng = np.random.default_rng(1)
+    h = w = 96
+    obj = _disc(h, w, 40, 48, 16)
+    support = np.zeros((h, w), bool)
+    support[54:80, 10:86] = True
+    support &= ~obj
+    sim = np.full((h, w), 0.2) + rng.normal(0.0, 0.02, (h, w))
+    sim[support] = 0.72 + rng.normal(0.0, 0.02, int(support.sum()))
+    sim[obj] = 0.95 + rng.normal(0.0, 0.015, int(obj.sum()))
+    seeds = patch_pixels((h, w), (0.45, 0.35, 0.55, 0.45))
+    a = auto_threshold(sim, seeds)
+    assert a.jump is not None and a.jump < a.value
+    assert 0.76 < a.value < 0.92, a.value
+    assert _iou(grow(sim > a.value, seeds), obj) > 0.95
+    assert _iou(sim > 0.5, obj) < 0.6  # what the fixed 0.5 did
+
+
+def test_choose_threshold_ignores_the_fall_to_the_patch_alone():
+    ts = np.round(np.arange(0.02, 0.985, 0.01), 2)
+    areas = np.where(ts < 0.9, 1000, 25)  # the object until 0.9, then only the 25 patch pixels
+    value, jump = choose_threshold(ts, areas, seed_area=25)
+    assert jump is None and 0.3 < value < 0.6
+
+
+def test_patch_auto_threshold_accepts_a_fraction_rect_and_big_maps():
+    sim = np.full((300, 200), 0.1, np.float32)
+    sim[100:200, 50:150] = 0.9
+    t = patch_auto_threshold(torch.from_numpy(sim), (0.4, 0.5, 0.5, 0.55))
+    assert 0.1 < t < 0.9
+
+
+def test_depth_edges_mark_the_far_side_of_a_step_and_not_a_grazing_plane():
+    h, w, f = 64, 64, 80.0
+    cams = Cameras.create(look_at((0.0, -3.0, 1.2), (0.0, 0.0, 0.0))[None], f, f, w / 2, h / 2, w, h)
+    o, d, dz = cams.image_rays(0)
+    t = -o[:, 2] / d[:, 2]  # the ground plane z = 0, seen at ~22 degrees
+    plane = (t * dz).reshape(h, w).numpy()
+    assert (plane > 0).all()
+    assert not depth_edges(plane).any(), "a plane at a grazing angle has no depth edge"
+    step = plane.copy()
+    box = np.zeros((h, w), bool)
+    box[20:40, 20:44] = True
+    step[box] *= 0.9  # a box standing 10% nearer
+    e = depth_edges(step)
+    ring = np.zeros_like(box)
+    ring[19:41, 19:45] = True
+    assert e.any() and not (e & box).any(), "only the far side is a barrier"
+    assert (e & ~ring).sum() == 0, "edges only next to the box"
+    assert e[19, 25] and e[40, 25] and e[30, 19] and e[30, 44]
+
+
+def test_fill_holes_keeps_holes_with_a_barrier():
+    m = np.zeros((20, 20), bool)
+    m[2:18, 2:18] = True
+    m[5:8, 5:8] = False  # a printed letter: filled
+    m[11:15, 11:15] = False  # the hole of a ring onto the floor: kept
+    barrier = np.zeros_like(m)
+    barrier[12, 12] = True
+    out = fill_holes(m, barrier)
+    assert out[5:8, 5:8].all() and not out[11:15, 11:15].any()
+
+
+def _two_view_scene():
+    """A box of its support's colour just above a ground plane (as a loaf touches its board at one point,
+    its whole silhouette is a depth step), seen by two cameras: depth and ids per view."""
+    h = w = 64
+    f = 70.0
+    eyes = [(0.3, -3.0, 1.5), (-1.2, -2.7, 1.4)]
+    cams = Cameras.create(np.stack([look_at(e, (0.0, 0.0, 0.2)) for e in eyes]), f, f, w / 2, h / 2, w, h)
+    depths, ids = [], []
+    lo, hi = np.array([-0.3, -0.3, 0.12]), np.array([0.3, 0.3, 0.62])
+    for i in range(2):
+        o, d, dz = cams.image_rays(i)
+        o, d = o.numpy().astype(np.float64), d.numpy().astype(np.float64)
+        t_ground = np.where(d[:, 2] < 0, -o[:, 2] / np.minimum(d[:, 2], -1e-9), np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (lo - o) / d, (hi - o) / d
+        tmin = np.nanmax(np.minimum(t0, t1), 1)
+        tmax = np.nanmin(np.maximum(t0, t1), 1)
+        hit_box = (tmax >= tmin) & (tmin > 0)
+        t = np.where(hit_box & (tmin < t_ground), tmin, t_ground)
+        depths.append((t * dz.numpy()).reshape(h, w).astype(np.float32))
+        ids.append(np.where(hit_box & (tmin < t_ground), 2, 1).reshape(h, w))
+    return cams, depths, ids
+
+
+def test_mask_stops_at_a_depth_edge():
+    """The support has the object's colour (similarity 0.9 on both): without geometry the mask takes the
+    support; with the depth edges and seeded growth it stops at the box's silhouette, in both views
+    (the second view is seeded through the first view's surface points)."""
+    cams, depths, ids = _two_view_scene()
+    gts = [i == 2 for i in ids]
+    sims = [np.where(g, 0.95, 0.9).astype(np.float32) for g in gts]
+    ops = [np.ones_like(d) for d in depths]
+    ys, xs = np.nonzero(gts[0])
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    seed = np.zeros_like(gts[0])
+    seed[cy - 2:cy + 3, cx - 2:cx + 3] = True
+    assert gts[0][seed].all()
+    plain = geometric_masks(sims, depths, ops, cams, [(0, seed)], 0.5, GeometryParts.none())
+    assert all(_iou(m, g) < 0.3 for m, g in zip(plain, gts))
+    shaped = geometric_masks(sims, depths, ops, cams, [(0, seed)], 0.5, GeometryParts())
+    for m, g in zip(shaped, gts):
+        assert _iou(m, g) > 0.9, _iou(m, g)
+    no_edges = geometric_masks(sims, depths, ops, cams, [(0, seed)], 0.5, GeometryParts(edges=False))
+    assert _iou(no_edges[0], gts[0]) < 0.3  # the edges are what stops it
+
+
+@pytest.fixture(scope="module")
+def teacher_views(tmp_path_factory):
+    """Per preset: default-teacher similarity to the auto patch, ground-truth depth and object mask in the
+    patch's view (the field learns these features; its depth stands in for the ground truth)."""
+    from core.bench.teacher import place_patch
+    from core.scene.loaders.detect import load_scene
+    from core.select.query import Patch
+    from core.select.selection import Selection
+    from core.synth.generate import make_scene
+    from core.teachers.feature_default import DefaultFeatureTeacher
+
+    import cv2
+
+    out = {}
+    teacher = DefaultFeatureTeacher()
+    for name in ("demo", "bread"):
+        root = make_scene(name, tmp_path_factory.mktemp(name), size=96, views=3, seed=0, test_views=1)
+        scene = load_scene(root, splits=("train",))
+        obj = json.loads((root / "gt" / "objects.json").read_text())["edited_object_id"]
+        gts = [cv2.imread(str(root / "gt" / "train" / f"r_{i}_mask.png"), cv2.IMREAD_UNCHANGED) == obj
+               for i in range(3)]
+        v, (y0, y1, x0, x1) = place_patch(gts)
+        depth = np.load(root / "gt" / "train" / f"r_{v}_depth.npy")
+        feats = torch.from_numpy(teacher(scene.train.images[v]) * (depth > 0)[..., None])
+        sel = Selection()
+        p = Patch(v, x0, y0, x1, y1)
+        sel.add_patch(feats, p)
+        out[name] = (sel.similarity(feats).numpy(), p, depth, gts[v])
+    return out
+
+
+def test_auto_threshold_on_a_preset_with_two_clear_modes(teacher_views):
+    sim, p, depth, gt = teacher_views["demo"]
+    t = patch_auto_threshold(sim, p, depth, (depth > 0).astype(np.float32))
+    assert _iou((sim > t) & (depth > 0), gt) > 0.9
+
+
+def test_auto_threshold_and_depth_edges_on_a_loaf_on_a_board_of_its_colour(teacher_views):
+    sim, p, depth, gt = teacher_views["bread"]
+    seeds = patch_pixels(sim.shape, p)
+    barrier = depth_edges(depth)
+    t = patch_auto_threshold(sim, p, depth, (depth > 0).astype(np.float32))
+    assert _iou((sim > 0.5) & (depth > 0), gt) < 0.5, "the board and the table look like the loaf"
+    assert _iou(fill_holes(grow(sim > t, seeds, barrier), barrier), gt) > 0.9
+
+
+def test_selection_saves_its_automatic_threshold(tmp_path):
+    from core.select.query import Patch
+    from core.select.selection import Selection
+    from core.workspace.workspace import Workspace
+
+    ws = Workspace.create(tmp_path / "ws")
+    feats = torch.zeros(16, 16, 4)
+    feats[..., 0] = 1.0
+    feats[4:12, 4:12] = torch.tensor([0.0, 1.0, 0.0, 0.0])
+    sel = Selection()
+    sel.add_patch(feats, Patch(0, 6, 6, 9, 9))
+    sel.auto_threshold = patch_auto_threshold(sel.similarity(feats), Patch(0, 6, 6, 9, 9))
+    sel.threshold = sel.auto_threshold
+    sel.save(ws)
+    back = Selection.load(ws)
+    assert back.auto_threshold == pytest.approx(sel.auto_threshold) and back.threshold == pytest.approx(sel.threshold)
+    assert 0.0 < back.auto_threshold < 1.0
+    assert (back.mask(feats) == (feats[..., 1] > 0)).all()
