@@ -273,7 +273,7 @@ def test_registry_records_match_the_backends_and_their_extras():
         overridden = {e for e in EXTRAS if getattr(cls, e) is not getattr(Guidance, e)}
         assert overridden == set(registry.get(name).extras), name
         assert registry.get(name).factory is not None
-    assert RemoveGuidance.grow_region is False and RecolorGuidance.grow_region is True
+    assert RemoveGuidance.grow_region is False and RecolorGuidance.grow_region is False  # a recolour adds no geometry
     assert isinstance(AnalyticGuidance([torch.zeros(1, 3, 4, 4)]), Guidance)
     assert registry.resolve("offline", "remove the ball").name == "remove"
     assert registry.resolve("offline", "make it blue").name == "recolor"

@@ -92,7 +92,8 @@ GUIDANCES: dict[str, GuidanceSpec] = {s.name: s for s in (
     GuidanceSpec("offline", "recolor or remove, read from the prompt (no model)", None, needs_prompt=True,
                  pick=offline_kind),
     GuidanceSpec("recolor", "recolour the selection to a colour named in the prompt or given as --color, "
-                            "keeping its shading (no model)", _recolor, needs_prompt=False),
+                            "keeping its shading (no model)", _recolor, needs_prompt=False,
+                 extras=("grow_region",)),
     GuidanceSpec("remove", "remove the object and fill in behind it (no model)", _remove, needs_prompt=False,
                  extras=("grow_region", "field_loss")),
     GuidanceSpec("sd", "Stable Diffusion score distillation (a local model), with the CLIP background loss",
