@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import time
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from imgui_bundle import imgui
@@ -64,14 +65,15 @@ class EditorApp:
         self.open_scene(path)
 
     # ---- actions (called by panels and input)
-    def call(self, name: str, *args: Any, **kwargs: Any) -> None:
-        self.worker.call(name, *args, **kwargs)
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Run `fn` (a bound method of the engine) on the worker; its Reply arrives in `_handle`."""
+        self.worker.call(fn, *args, **kwargs)
 
     def open_scene(self, path: str | None) -> None:
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
-        self.worker.call("load", path, self.state.workspace)
+        self.worker.call(self.engine.load, path, self.state.workspace)
 
     def set_training(self, on: bool) -> None:
         self.state.training = on
@@ -87,7 +89,7 @@ class EditorApp:
         self.state.has_selection = False
         self.state.masks_done = None
         self.viewport.upload_similarity(None)
-        self.call("clear_selection")
+        self.call(self.engine.clear_selection)
         self.worker.refresh()
 
     def start_repaint(self) -> None:
@@ -95,11 +97,11 @@ class EditorApp:
         opts = {"lambda_unmask": float(s.lambda_unmask), "steps": int(s.steps), "threshold": float(s.threshold)}
         if s.backend == "sd":
             opts.update(sd_path=s.sd_path or None, clip_path=s.clip_path or None)
-        self.call("repaint", s.prompt, s.bg_prompt, s.backend, opts)
+        self.call(self.engine.repaint, s.prompt, s.bg_prompt, s.backend, opts)
 
     def export_png(self, path: str) -> None:
         if self.camera is not None:
-            self.call("export_png", self.camera.cameras(*self.view_size), path)
+            self.call(self.engine.export_png, self.camera.cameras(*self.view_size), path)
 
     def export_turntable(self, path: str, frames: int = 48) -> None:
         if self.camera is None:
@@ -110,7 +112,7 @@ class EditorApp:
         for _ in range(frames):
             cams.append(cam.cameras(w, h))
             cam.yaw += 2 * math.pi / frames
-        self.call("export_turntable", cams, path)
+        self.call(self.engine.export_turntable, cams, path)
 
     # ---- messages from the worker
     def _handle(self, msg: Any) -> None:
@@ -195,7 +197,7 @@ class EditorApp:
                         mode = "new"
                     self.state.selection_busy = True
                     self.events.append((time.perf_counter(), "patch_release", rect))
-                    self.call("select", cam.cameras(*self.view_size), rect, mode)
+                    self.call(self.engine.select, cam.cameras(*self.view_size), rect, mode)
                 self.worker.hold(False)  # after the select is queued: the worker runs commands before training
             return
         if hovered:
@@ -365,6 +367,8 @@ def run_editor(path: str | None = None, workspace: str | None = None) -> int:
     from core.engine import Engine
 
     window = Window(title="RePaint-NeRF" + (f" - {Path(path).name}" if path else ""))
+    # SIGTERM closes the window as the close button does: the loop ends, the worker stops, no stack trace
+    signal.signal(signal.SIGTERM, lambda signum, frame: window.request_close())
     app = EditorApp(window, Engine(), path, workspace)
     try:
         while not window.should_close():

@@ -63,7 +63,7 @@ def test_worker_yields_training_to_views_commands_and_gestures(engine):
     assert stop()
     stop = worker._interrupted()
     assert not stop()
-    worker.call("info")
+    worker.call(engine.info)
     assert stop()
     worker.commands.get_nowait()
     assert not worker._interrupted()()

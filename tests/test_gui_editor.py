@@ -346,7 +346,7 @@ def test_an_idle_editor_sleeps_and_a_result_wakes_it(editor):
     editor.frame()
     assert time.perf_counter() - t0 > 0.5  # waited for events (1 s budget), nothing came
     editor.frame()
-    editor.call("clear_selection")  # a reply is on its way: the worker wakes the waiting UI
+    editor.call(editor.engine.clear_selection)  # a reply is on its way: the worker wakes the waiting UI
     t0 = time.perf_counter()
     editor.frame()
     assert time.perf_counter() - t0 < 0.5
