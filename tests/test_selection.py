@@ -292,7 +292,6 @@ def _tiny_field_config():
 
 @pytest.fixture(scope="module")
 def trained_ws(scene_factory, tmp_path_factory):
-    pytest.importorskip("core.field.field")
     from core.scene.loaders.detect import load_scene
     from core.teachers.cache import build_feature_store
     from core.teachers.depth_sparse import depth_for_scene
