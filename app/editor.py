@@ -21,7 +21,7 @@ from app.panels import repaint as repaint_panel
 from app.panels import scene as scene_panel
 from app.panels import selection as selection_panel
 from app.panels import view as view_panel
-from app.state import EditorState
+from app.state import EditorState, TrainingHistory
 from app.viewport import Viewport
 from app.window import Window
 from app.worker import Crashed, Frame, Reply, Status, Worker
@@ -144,6 +144,7 @@ class EditorApp:
             if msg.name == "load":
                 s.loading = False
                 s.scene_info = dict(msg.value)
+                s.history = s.scene_info.pop("history", None) or TrainingHistory()  # a reopened workspace's curve
                 self.camera = CameraControl.framing(s.scene_info["cameras"])
                 self.worker.projector.reset()
                 for note in s.scene_info.get("notes", []):

@@ -124,7 +124,8 @@ class Engine:
                 "feature_head": self.has_feature_head(),
                 "has_edited": (root / "edited" / "transforms_train.json").is_file(),
                 "version": None if ver is None else {"id": ver.id, "name": ver.name, "kind": ver.kind},
-                "step": int(self.trainer.step_count), "notes": list(self.notes)}
+                "step": int(self.trainer.step_count), "notes": list(self.notes),
+                "history": self.trainer.history.copy()}  # the loss/PSNR curve so far, kept in the checkpoint
 
     def _need_scene(self) -> None:
         if self.scene is None:

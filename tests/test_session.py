@@ -124,3 +124,18 @@ def test_format_1_workspace_still_opens(trained_ws, tmp_path):
     eng.train_for(0.01)
     eng.save()
     assert read_header(ws.checkpoints_dir / "stage1.safetensors").format == FORMAT_VERSION
+
+
+def test_reopened_workspace_brings_its_training_history(trained_ws, tmp_path):
+    """The editor's loss/PSNR plot after reopening shows the steps trained before, not one step's axis."""
+    import shutil
+
+    from core.engine import Engine
+
+    ws_root, rec = trained_ws
+    copy = tmp_path / "ws"
+    shutil.copytree(ws_root, copy)
+    info = Engine("cpu", depth=False).load(copy)
+    h = info["history"]
+    assert h.steps == [float(s) for s in range(1, 13)] and len(h.loss) == len(h.psnr) == 12
+    assert h.loss == rec.trainer.history.loss[:12] and all(np.isfinite(h.psnr))

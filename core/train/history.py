@@ -27,6 +27,9 @@ class TrainingHistory:
             for lst in (self.steps, self.loss, self.psnr):
                 del lst[:half:2]
 
+    def copy(self) -> "TrainingHistory":
+        return TrainingHistory(list(self.steps), list(self.loss), list(self.psnr))
+
     def to_dict(self) -> dict:
         # JSON has no NaN: a missing value is null
         return {k: [None if v != v else v for v in getattr(self, k)] for k in ("steps", "loss", "psnr")}
