@@ -64,19 +64,25 @@ def require_feature_head(header: CheckpointHeader, where: str | Path) -> None:
                              where, hint="train it again with teacher features (a feature head), then select")
 
 
+def scene_root(ws: Workspace, facts: SceneFacts | None = None) -> Path:
+    """The dataset folder a workspace belongs to (its settings, else the header's facts); a WorkspaceError
+    when it is not recorded or has gone."""
+    root = ws.settings.get("scene") or (facts.root if facts else None)
+    if not root:
+        raise WorkspaceError("this workspace does not say which scene it belongs to (settings.json)", ws.root,
+                             hint="open the scene's dataset folder, or train: repaint-nerf train SCENE --workspace WS")
+    if not Path(root).exists():
+        raise WorkspaceError(f"the workspace's scene {root} is missing", ws.root,
+                             hint="move the dataset back, or set 'scene' in settings.json")
+    return Path(root)
+
+
 def workspace_scene(ws: Workspace, facts: SceneFacts | None = None) -> Scene:
     """The scene a workspace was trained on, loaded as it was then: its path, downscale and kind (from the
     header's facts when given, else the settings) and, when recorded, its world -> field normalisation."""
     settings = ws.settings
-    root = settings.get("scene") or (facts.root if facts else None)
-    if not root:
-        raise WorkspaceError("this workspace does not say which scene it belongs to (settings.json)", ws.root,
-                             hint="train it first: repaint-nerf train SCENE --workspace WS")
-    if not Path(root).exists():
-        raise WorkspaceError(f"the workspace's scene {root} is missing", ws.root,
-                             hint="move the dataset back, or set 'scene' in settings.json")
     kind = (facts.kind if facts else None) or settings.get("kind")
-    scene = load_scene(Path(root), float(settings.get("downscale", 1.0)), kind=kind, workspace=ws.root)
+    scene = load_scene(scene_root(ws, facts), float(settings.get("downscale", 1.0)), kind=kind, workspace=ws.root)
     norm = facts.normalization() if facts else None
     if norm is not None:
         scene.norm = norm  # the field lives in the space it was trained in
@@ -142,14 +148,7 @@ def _workspace_for(data: Path | None, workspace: str | Path | None, load_as: Loa
     """(workspace, scene path): an existing workspace names its scene; data gets one beside it by default."""
     if data is None or is_workspace(data):
         ws = Workspace.open(data if data is not None else workspace)
-        scene_root = ws.settings.get("scene")
-        if not scene_root:
-            raise WorkspaceError("this workspace does not say which scene it belongs to (settings.json)", ws.root,
-                                 hint="open the scene's dataset folder instead")
-        if not Path(scene_root).exists():
-            raise WorkspaceError(f"the workspace's scene {scene_root} is missing", ws.root,
-                                 hint="move the dataset back, or set 'scene' in settings.json")
-        return ws, Path(scene_root)
+        return ws, scene_root(ws)
     if not data.exists():
         raise UserError("no such dataset, photo folder or workspace", data,
                         hint="check the path, or open the demo scene")

@@ -59,40 +59,38 @@ def test_open_trained_restores_the_scene_as_trained(trained_ws):
         torch.testing.assert_close(t.field.state_dict()[k], v)
 
 
-def test_open_trained_uses_the_recorded_normalisation(trained_ws, tmp_path):
-    """A field lives in the space it was trained in: the header's normalisation wins over a recomputed one."""
+def _copy(trained_ws, tmp_path, edit_header=None):
+    """A copy of the trained workspace (the fixture stays untouched), its current version's raw header
+    changed by `edit_header(dict)` when given."""
     import shutil
 
-    from core.session import open_trained
     from core.workspace.workspace import Workspace
 
-    ws_root, _ = trained_ws
     copy = tmp_path / "ws"
-    shutil.copytree(ws_root, copy)
-    ws = Workspace.open(copy)
-    path = ws.version_path(ws.current_version)
-    ck = Checkpoint.load(path)
-    ck.header["scene"]["norm"] = {"center": [0.25, -0.5, 1.0], "scale": 0.75}
-    ck.save(path)
+    shutil.copytree(trained_ws[0], copy)
+    if edit_header is not None:
+        ws = Workspace.open(copy)
+        path = ws.version_path(ws.current_version)
+        ck = Checkpoint.load(path)
+        edit_header(ck.header)
+        ck.save(path)
+    return copy
+
+
+def test_open_trained_uses_the_recorded_normalisation(trained_ws, tmp_path):
+    """A field lives in the space it was trained in: the header's normalisation wins over a recomputed one."""
+    from core.session import open_trained
+
+    copy = _copy(trained_ws, tmp_path, lambda h: h["scene"].update(norm={"center": [0.25, -0.5, 1.0], "scale": 0.75}))
     t = open_trained(copy, "cpu")
     np.testing.assert_allclose(t.scene.norm.center, [0.25, -0.5, 1.0])
     assert t.scene.norm.scale == 0.75
 
 
 def test_selection_needs_a_feature_head(trained_ws, tmp_path):
-    import shutil
-
     from core.session import open_trained
-    from core.workspace.workspace import Workspace
 
-    ws_root, _ = trained_ws
-    copy = tmp_path / "ws"
-    shutil.copytree(ws_root, copy)
-    ws = Workspace.open(copy)
-    path = ws.version_path(ws.current_version)
-    ck = Checkpoint.load(path)
-    ck.header["field_config"]["feature_dim"] = 0
-    ck.save(path)
+    copy = _copy(trained_ws, tmp_path, lambda h: h["field_config"].update(feature_dim=0))
     with pytest.raises(WorkspaceError, match="without a feature head"):
         open_trained(copy, "cpu", need_features=True)
 
@@ -100,15 +98,11 @@ def test_selection_needs_a_feature_head(trained_ws, tmp_path):
 def test_format_1_workspace_still_opens(trained_ws, tmp_path):
     """Rewrite every file's header as format 1 wrote it (no history): the workspace opens for rendering, the
     engine resumes it, and saving writes the current format."""
-    import shutil
-
     from core.engine import Engine
     from core.session import open_trained
     from core.workspace.workspace import Workspace
 
-    ws_root, _ = trained_ws
-    copy = tmp_path / "ws"
-    shutil.copytree(ws_root, copy)
+    copy = _copy(trained_ws, tmp_path)
     ws = Workspace.open(copy)
     for path in [ws.version_path(ws.current_version), *ws.checkpoints_dir.glob("*.safetensors")]:
         ck = Checkpoint.load(path)
@@ -128,13 +122,10 @@ def test_format_1_workspace_still_opens(trained_ws, tmp_path):
 
 def test_reopened_workspace_brings_its_training_history(trained_ws, tmp_path):
     """The editor's loss/PSNR plot after reopening shows the steps trained before, not one step's axis."""
-    import shutil
-
     from core.engine import Engine
 
-    ws_root, rec = trained_ws
-    copy = tmp_path / "ws"
-    shutil.copytree(ws_root, copy)
+    rec = trained_ws[1]
+    copy = _copy(trained_ws, tmp_path)
     info = Engine("cpu", depth=False).load(copy)
     h = info["history"]
     assert h.steps == [float(s) for s in range(1, 13)] and len(h.loss) == len(h.psnr) == 12
