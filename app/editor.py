@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import time
 import traceback
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from imgui_bundle import imgui
@@ -21,7 +22,7 @@ from app.panels import scene as scene_panel
 from app.panels import selection as selection_panel
 from app.panels import export as export_panel
 from app.panels import view as view_panel
-from app.state import EditorState, ExportJob
+from app.state import EditorState, ExportJob, TrainingHistory
 from app.viewport import Viewport
 from app.window import Window
 from app.worker import Crashed, Frame, Reply, Status, Worker
@@ -76,14 +77,15 @@ class EditorApp:
         self.open_scene(path)
 
     # ---- actions (called by panels and input)
-    def call(self, name: str, *args: Any, **kwargs: Any) -> None:
-        self.worker.call(name, *args, **kwargs)
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Run `fn` (a bound method of the engine) on the worker; its Reply arrives in `_handle`."""
+        self.worker.call(fn, *args, **kwargs)
 
     def open_scene(self, path: str | None) -> None:
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
-        self.worker.call("load", path, self.state.workspace)
+        self.worker.call(self.engine.load, path, self.state.workspace)
 
     def set_training(self, on: bool) -> None:
         self.state.training = on
@@ -99,15 +101,15 @@ class EditorApp:
         self.state.has_selection = False
         self.state.masks_done = None
         self.viewport.upload_similarity(None)
-        self.call("clear_selection")
+        self.call(self.engine.clear_selection)
         self.worker.refresh()
 
     def start_repaint(self) -> None:
-        self.call("repaint", **repaint_panel.repaint_request(self.state))
+        self.call(self.engine.repaint, **repaint_panel.repaint_request(self.state))
 
     def export_png(self, path: str) -> None:
         if self.camera is not None:
-            self.call("export_png", self.camera.cameras(*self.view_size), path)
+            self.call(self.engine.export_png, self.camera.cameras(*self.view_size), path)
 
     def start_export(self, kind: str, *args: Any, **kwargs: Any) -> None:
         """Run `engine.export_<kind>` on the worker with a progress bar and Cancel (one export at a time)."""
@@ -116,7 +118,9 @@ class EditorApp:
             return
         target = str(args[-1] if kind == "turntable" else args[0])
         job = self.state.export_job = ExportJob(kind, target)
-        self.call(f"export_{kind}", *args, cancel=job.cancelled, progress=job.report, **kwargs)
+        export = {"mesh": self.engine.export_mesh, "points": self.engine.export_points,
+                  "dataset": self.engine.export_dataset, "turntable": self.engine.export_turntable}[kind]
+        self.call(export, *args, cancel=job.cancelled, progress=job.report, **kwargs)
 
     def _video_size(self) -> tuple[int, int]:
         """Video frames: the viewport's aspect at most `state.video_height` pixels high, even sizes (H.264 4:2:0)."""
@@ -165,7 +169,7 @@ class EditorApp:
             self.state.say("add at least two key views (Add key view) before saving a path", "error")
             return
         keys = self.state.path_keys
-        self.call("export_camera_path", [k[0] for k in keys], [k[1] for k in keys], path,
+        self.call(self.engine.export_camera_path, [k[0] for k in keys], [k[1] for k in keys], path,
                   int(self.state.path_frames), *self._video_size())
 
     # ---- messages from the worker
@@ -200,6 +204,7 @@ class EditorApp:
             if msg.name == "load":
                 s.loading = False
                 s.scene_info = dict(msg.value)
+                s.history = s.scene_info.pop("history", None) or TrainingHistory()  # a reopened workspace's curve
                 self.camera = CameraControl.framing(s.scene_info["cameras"])
                 self.worker.projector.reset()
                 for note in s.scene_info.get("notes", []):
@@ -256,7 +261,7 @@ class EditorApp:
                     self.state.selection_busy = True
                     self.events.append((time.perf_counter(), "patch_release", rect))
                     self.state.select_rect = (rect, mode)
-                    self.call("select", cam.cameras(*self.view_size), rect, mode)
+                    self.call(self.engine.select, cam.cameras(*self.view_size), rect, mode)
                 self.worker.hold(False)  # after the select is queued: the worker runs commands before training
             return
         if hovered:
@@ -426,6 +431,8 @@ def run_editor(path: str | None = None, workspace: str | None = None) -> int:
     from core.engine import Engine
 
     window = Window(title="RePaint-NeRF" + (f" - {Path(path).name}" if path else ""))
+    # SIGTERM closes the window as the close button does: the loop ends, the worker stops, no stack trace
+    signal.signal(signal.SIGTERM, lambda signum, frame: window.request_close())
     app = EditorApp(window, Engine(), path, workspace)
     try:
         while not window.should_close():

@@ -4,25 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from core.repaint.config import RepaintConfig
-
-
-@dataclass
-class TrainingHistory:
-    """Loss/PSNR against training step, for the live plot."""
-
-    steps: list = field(default_factory=list)
-    loss: list = field(default_factory=list)
-    psnr: list = field(default_factory=list)
-
-    def add(self, info: dict) -> None:
-        if "step" not in info:
-            return
-        self.steps.append(float(info["step"]))
-        self.loss.append(float(info.get("loss", float("nan"))))
-        self.psnr.append(float(info.get("psnr", float("nan"))))
-        if len(self.steps) > 5000:  # keep the plot cheap: drop every other old point
-            for lst in (self.steps, self.loss, self.psnr):
-                del lst[:2500:2]
+from core.train.history import TrainingHistory
 
 
 class ExportJob:

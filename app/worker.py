@@ -14,8 +14,6 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import numpy as np
-
 from app.feature_view import FeatureProjector
 from app.resolution import DynamicResolution
 from core.errors import UserError
@@ -50,7 +48,8 @@ class Frame:
 
 @dataclass
 class Reply:
-    """The outcome of a command: its value, or an error message for the UI."""
+    """The outcome of a command: its value, or an error message for the UI. `name` is the called function's
+    name (the editor dispatches replies on it)."""
 
     name: str
     value: Any = None
@@ -90,6 +89,8 @@ class Worker:
         self._lock = threading.Lock()
         self._latest: RenderRequest | None = None
         self._serial = 0
+        self.cancelled = 0  # renders stopped mid-way by a newer request or a command (the renderer's cancel)
+        self.dropped = 0  # requests superseded before the worker started rendering them
         self._served: tuple[int, float] = (-1, 0.0)  # (serial, best scale) already delivered
         self._last_preview = 0.0
         self._last_render_s = 0.0
@@ -117,6 +118,8 @@ class Worker:
     def request_render(self, cameras: Any, key: tuple, outputs: tuple = ("rgb", "depth")) -> None:
         """Replace any pending request with this one (newest first; older ones are dropped or cancelled)."""
         with self._lock:
+            if self._latest is not None and self._served[0] != self._latest.serial:
+                self.dropped += 1  # the worker never reached it
             self._serial += 1
             self._latest = RenderRequest(cameras, key, outputs, serial=self._serial)
         self._wake.set()
@@ -127,9 +130,10 @@ class Worker:
             self._served = (-1, 0.0)
         self._wake.set()
 
-    def call(self, name: str, *args: Any, tag: Any = None, **kwargs: Any) -> None:
-        """Run `engine.name(*args, **kwargs)` on the worker; a `Reply` comes back through `poll`."""
-        self.commands.put((name, args, kwargs, tag))
+    def call(self, fn: Callable[..., Any], *args: Any, tag: Any = None, **kwargs: Any) -> None:
+        """Run `fn(*args, **kwargs)` (a bound method of the engine) on the worker; a `Reply` named after the
+        function comes back through `poll`."""
+        self.commands.put((fn, args, kwargs, tag))
         self._wake.set()
 
     def hold(self, on: bool) -> None:
@@ -172,11 +176,12 @@ class Worker:
     def _run_commands(self) -> None:
         while True:
             try:
-                name, args, kwargs, tag = self.commands.get_nowait()
+                fn, args, kwargs, tag = self.commands.get_nowait()
             except queue.Empty:
                 return
+            name = getattr(fn, "__name__", repr(fn))
             try:
-                value = getattr(self.engine, name)(*args, **kwargs)
+                value = fn(*args, **kwargs)
                 self._publish(Reply(name, value, None, tag))
             except UserError as exc:
                 self._publish(Reply(name, None, str(exc), tag))
@@ -198,25 +203,24 @@ class Worker:
         return min(1.0, served_scale * 2.0)
 
     def _serve_render(self) -> bool:
-        with self._lock:
+        with self._lock:  # picking the request and marking it started is one step for `request_render`'s count
             req = self._latest
-        if req is None:
-            return False
-        scale = self._next_scale(req)
-        if scale is None:
-            return False
+            scale = None if req is None else self._next_scale(req)
+            if scale is None:
+                return False
+            first = self._served[0] != req.serial
+            self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
         # The first frame of a new view is short by design (the controller's scale) and is never cancelled by a
         # newer view: during a drag, requests come every UI frame, faster than renders, and cancelling each for
         # the next left the viewport frozen until the mouse stopped. Refinements of a resting view are long: a
         # move or a command cancels them.
-        first = self._served[0] != req.serial
         cancel = self._stop.is_set if first else self._stale(req.serial)
         t0 = time.perf_counter()
-        self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
         data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
         self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request
+            self.cancelled += 1
             self._served = (-1, 0.0)
             return True
         if data.get("feature") is not None and "feature" in req.outputs:

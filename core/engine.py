@@ -4,12 +4,12 @@ The editor's worker thread and scripts drive everything through it: load (datase
 or a saved workspace), stage-1 training with teacher features and depth priors (paper Eq. s1), render,
 select (patch queries, similarity, masks for every view), repaint (paper Eq. s2) with pause/cancel,
 undo/redo through workspace versions, save and export. It composes the public APIs of the other `core`
-modules and holds no algorithm of its own. A backend that is not installed raises `FeatureUnavailable`.
+modules and holds no algorithm of its own; scenes and workspaces open through `core.session`.
 """
 from __future__ import annotations
 
 import dataclasses
-import importlib
+import importlib.util
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -19,78 +19,40 @@ import torch
 
 from core.device import get_device
 from core.errors import UserError, WorkspaceError
+from core.render.renderer import RenderOptions, render_camera
 from core.repaint import registry
 from core.repaint.config import RepaintConfig
+from core.repaint.trainer import RepaintTrainer
+from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, load_masks, masks_for_views
+from core.select.selection import Selection
+from core.session import Teachers, start_reconstruction
+from core.synth.demo import demo_scene_path
+from core.train.stage1 import TrainConfig
 
-# Feature -> the module that provides it (checked by import, lazily: `core` stays fast to import).
-BACKENDS = {
-    "load": "core.scene.loaders.detect",
-    "demo": "core.synth.demo",
-    "field": "core.field.field",
-    "render": "core.render.renderer",
-    "train": "core.train.stage1",
-    "select": "core.select",
-    "repaint": "core.repaint.trainer",
-    "workspace": "core.workspace.workspace",
-}
-WORKSPACE_MARKER = "workspace.json"
+# Optional packages (the `diffusion` extra) -> the features that need them; everything else is always built.
+OPTIONAL = {"sd": ("diffusers", "transformers")}
 # The viewport never renders finer than this multiple of the training images' long side (sharper than
 # the data adds nothing and costs seconds per frame on a CPU).
 MAX_RENDER_OVERSAMPLE = 2.0
 INTERACTIVE_CHUNK = 1 << 16  # samples per marching round of a cancellable (viewport) render
 
 
-def editor_train_config(device: torch.device):
+def editor_train_config(device: torch.device) -> TrainConfig:
     """Stage-1 settings for interactive training: on a CPU, smaller batches and occupancy grid, and grid updates
     spread over their 16 steps, so no step is long (a camera move or a patch waits for one step: on the demo
     about 45 ms, where an unspread warm-up sweep made every 16th step take 200-330 ms); on CUDA the paper's
     defaults, spread likewise."""
-    from core.train.stage1 import TrainConfig
-
     if device.type == "cuda":
         return TrainConfig(grid_update_spread=True)
     return TrainConfig(rays_per_batch=1024, grid_resolution=64, max_samples=256, grid_update_spread=True)
 
 
 class FeatureUnavailable(UserError):
-    """A feature whose backend module is not part of this build (or failed to import)."""
-
-
-def _backend(feature: str):
-    name = BACKENDS[feature]
-    try:
-        return importlib.import_module(name)
-    except ImportError as exc:
-        raise FeatureUnavailable(f"'{feature}' is not available in this build ({name}: {exc})") from None
+    """A feature whose optional packages are not installed."""
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().float().cpu().numpy()
-
-
-def is_workspace(path: str | Path) -> bool:
-    """Whether `path` is a repaint-nerf workspace folder (it holds workspace.json)."""
-    return (Path(path) / WORKSPACE_MARKER).is_file()
-
-
-def _checkpoint_header(path: Path) -> dict | None:
-    """The JSON header of a checkpoint or version file without reading its tensors (None if unreadable)."""
-    import json
-
-    from safetensors import safe_open
-
-    from core.train.checkpoint import HEADER_KEY
-
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            return json.loads((f.metadata() or {})[HEADER_KEY])
-    except Exception:
-        try:
-            from core.train.checkpoint import Checkpoint
-
-            return Checkpoint.load(path).header
-        except Exception:
-            return None
 
 
 class Engine:
@@ -120,14 +82,14 @@ class Engine:
     # ---- what exists
     @staticmethod
     def capabilities() -> dict[str, str | None]:
-        """Feature -> None when available, else the reason it is not (shown in the panels)."""
+        """Optional feature -> None when its packages are installed, else why it is not available (the panels
+        show it)."""
         out: dict[str, str | None] = {}
-        for feature in BACKENDS:
-            try:
-                _backend(feature)
-                out[feature] = None
-            except FeatureUnavailable as exc:
-                out[feature] = str(exc)
+        for feature, packages in OPTIONAL.items():
+            missing = [p for p in packages if importlib.util.find_spec(p) is None]
+            out[feature] = None if not missing else (
+                f"'{feature}' is not available in this install (missing {', '.join(missing)}: "
+                f"pip install 'repaint-nerf[diffusion]')")
         return out
 
     # ---- scene
@@ -137,66 +99,18 @@ class Engine:
         A workspace opens at its current version. Otherwise the workspace defaults to a folder next to the
         data (the dataset folder itself is never written to) and resumes its checkpoint when there is one.
         """
-        if path is None:
-            path = _backend("demo").demo_scene_path()
-        path = Path(path)
-        if not path.exists():
-            raise UserError("no such dataset, photo folder or workspace", path,
-                            hint="check the path, or open the demo scene")
-        loader, ws_mod, stage1 = _backend("load"), _backend("workspace"), _backend("train")
-        _backend("field"), _backend("render")  # a clear "not available" before any work
-        if is_workspace(path):
-            ws = ws_mod.Workspace.open(path)
-            scene_root = ws.settings.get("scene")
-            if not scene_root:
-                raise WorkspaceError("this workspace does not say which scene it belongs to (settings.json)", path,
-                                     hint="open the scene's dataset folder instead")
-            scene_path = Path(scene_root)
-            if not scene_path.exists():
-                raise WorkspaceError(f"the workspace's scene {scene_path} is missing", path,
-                                     hint="move the dataset back, or set 'scene' in settings.json")
-        else:
-            scene_path = path
-            ws_root = Path(workspace) if workspace else path.parent / f"{path.name}.repaint-nerf"
-            ws = ws_mod.Workspace.open_or_create(ws_root)
-            old = ws.settings.get("scene")
-            key = str(path.resolve())
-            if old and old != key and ws.current_version is not None:
-                raise WorkspaceError(f"this workspace holds another scene ({old})", ws.root,
-                                     hint="pass another --workspace folder")
-            ws.update_settings(scene=key)
-        scene = loader.load_scene(scene_path, float(ws.settings.get("downscale", 1.0)), kind=ws.settings.get("kind"),
-                                  workspace=ws.root)
-
-        ckpt = ws.checkpoints_dir / stage1.CHECKPOINT_NAME
-        version = ws.current_version
-        header = _checkpoint_header(ckpt) if ckpt.exists() else None
-        if header is None and version is not None:
-            header = _checkpoint_header(ws.version_path(version))
-        field_cfg = stage1.field_config_from_dict(header["field_config"]) if header else None
-        train_cfg = self.train_cfg or editor_train_config(self.device)
-        if header and header.get("train_config"):
-            train_cfg = stage1.TrainConfig.from_dict(header["train_config"])
-        want_features = self.use_features and (field_cfg is None or getattr(field_cfg, "feature_dim", 0) > 0)
-        from core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
-
-        self.notes = []
-        features = feature_targets(scene, ws, getattr(field_cfg, "feature_dim", 0) or FEATURE_DIMS,
-                                   notes=self.notes) if want_features else None
-        depth = depth_priors(scene, ws, self.notes) if self.use_depth else None
-        trainer = stage1.Stage1Trainer(scene, ws, train_cfg, field_cfg, device=self.device,
-                                       feature_targets=features, depth_priors=depth)
-        if ckpt.exists():
-            trainer.resume()
-        if version is not None and (version.kind == "edit" or not ckpt.exists()):
-            trainer.load_version(ws.version_path(version))
-        self.scene, self.workspace, self.trainer = scene, ws, trainer
-        self.field, self.grid = trainer.field, trainer.grid
+        rec = start_reconstruction(demo_scene_path() if path is None else path, workspace,
+                                   train_cfg=self.train_cfg or editor_train_config(self.device),
+                                   teachers=Teachers(features=self.use_features, depth=self.use_depth),
+                                   device=self.device)
+        ws = rec.workspace
+        self.scene, self.workspace, self.trainer, self.notes = rec.scene, ws, rec.trainer, rec.notes
+        self.field, self.grid = rec.trainer.field, rec.trainer.grid
         self.selection, self.masks, self.edit, self._feature_cache = None, None, None, None
         self._text_query = None
         self.paused = False
         self.stage1_frozen = any(v.kind == "edit" for v in ws.versions)
-        self._saved_step = trainer.step_count if version is not None else -1
+        self._saved_step = rec.trainer.step_count if ws.current_version is not None else -1
         return self.info()
 
     def info(self) -> dict:
@@ -212,7 +126,8 @@ class Engine:
                 "feature_head": self.has_feature_head(),
                 "has_edited": (root / "edited" / "transforms_train.json").is_file(),
                 "version": None if ver is None else {"id": ver.id, "name": ver.name, "kind": ver.kind},
-                "step": int(self.trainer.step_count), "notes": list(self.notes), "device": str(self.device)}
+                "step": int(self.trainer.step_count), "notes": list(self.notes), "device": str(self.device),
+                "history": self.trainer.history.copy()}  # the loss/PSNR curve so far, kept in the checkpoint
 
     def _need_scene(self) -> None:
         if self.scene is None:
@@ -276,14 +191,13 @@ class Engine:
         'similarity' (when something is selected). The viewport is capped at twice the training resolution
         unless `full`; returns None when `cancel()` turned true."""
         self._need_scene()
-        render = _backend("render")
         want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
         if self.selection is not None and "feature" not in want and self.has_feature_head():
             want = want + ("feature",)
         capped = not full and scale >= self._max_scale(cameras)
         if capped:
             scale = self._max_scale(cameras)
-        opts = render.RenderOptions(outputs=want, background=self.trainer.eval_background(),
+        opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
                                     max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
             opts.chunk = INTERACTIVE_CHUNK
@@ -291,7 +205,7 @@ class Engine:
         self.field.eval()
         try:
             with torch.no_grad():
-                out = render.render_camera(self.field, self.grid, cameras.to(self.device), 0, opts, scale=scale,
+                out = render_camera(self.field, self.grid, cameras.to(self.device), 0, opts, scale=scale,
                                            cancel=cancel)
         finally:
             self.field.train(was_training)
@@ -323,11 +237,10 @@ class Engine:
         """Add ('new', 'add') or subtract ('sub') the mean feature of `patch` (x0, y0, x1, y1 in [0, 1]) of this
         view, using the newest rendered feature map of this camera. Returns the view's similarity map."""
         self._need_scene()
-        sel = _backend("select")
         self._need_feature_head()
         feat = self._features_for(cameras)
         if self.selection is None or mode == "new":
-            self.selection = sel.Selection(teacher=str(self.workspace.settings.get("teacher", "default")),
+            self.selection = Selection(teacher=str(self.workspace.settings.get("teacher", "default")),
                                            cleanup=False)  # a free view has no training-view seed for 3D clean-up
         self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
         self.masks = None
@@ -343,7 +256,6 @@ class Engine:
         teacher (`clip_path`, else $REPAINT_NERF_CLIP_PATH or the 'clip_path' setting). Returns this view's
         similarity map, as `select` does."""
         self._need_scene()
-        sel = _backend("select")
         if mode not in ("new", "add"):
             raise UserError(f"a text query can start or extend a selection, not {mode!r}",
                             hint="subtract with a patch (ctrl-drag) instead")
@@ -351,7 +263,7 @@ class Engine:
         teacher, codec = self._text_teacher(clip_path)
         feat = self._features_for(cameras)
         selection = self.selection if self.selection is not None and mode == "add" else \
-            sel.Selection(teacher=str(self.workspace.settings.get("teacher", "default")), cleanup=False)
+            Selection(teacher=str(self.workspace.settings.get("teacher", "default")), cleanup=False)
         selection.add_text(text, teacher, codec)
         self.selection, self.masks = selection, None
         return _np(self.selection.similarity(feat))
@@ -374,18 +286,17 @@ class Engine:
         self._need_scene()
         if self.selection is None:
             raise UserError("nothing is selected", hint="drag a rectangle over an object in the viewport first")
-        sel = _backend("select")
         from core.teachers.sam_refine import workspace_refiner  # the workspace's SAM choice (select --sam-path)
 
-        self.selection.threshold = sel.masks.check_threshold(threshold)
+        self.selection.threshold = check_threshold(threshold)
         was_training = self.field.training
         self.field.eval()
         try:
             with torch.no_grad():
                 cams = self.scene.field_cameras("train").to(self.device)
-                opts = _backend("render").RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
-                masks = sel.masks_for_views(self.field, self.grid, cams, self.selection, threshold,
-                                            workspace=self.workspace, cache=sel.ViewCache(self.field, self.grid, cams,
+                opts = RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+                masks = masks_for_views(self.field, self.grid, cams, self.selection, threshold,
+                                            workspace=self.workspace, cache=ViewCache(self.field, self.grid, cams,
                                                                                           render_opts=opts),
                                             names=list(self.scene.train.names or []) or None,
                                             refine=workspace_refiner(self.workspace, self.scene.train.images))
@@ -407,30 +318,27 @@ class Engine:
         the recolour target (else a colour named in the prompt).
         """
         self._need_scene()
+        if OPTIONAL.get(guidance) and self.capabilities()[guidance]:
+            raise FeatureUnavailable(self.capabilities()[guidance])
         if registry.get(guidance).needs_prompt and not prompt.strip():
             raise UserError("the prompt is empty", hint="type what the selected region should become")
-        rep = _backend("repaint")
         # The viewport re-renders the live field as the preview: no snapshots.
         config = dataclasses.replace(config or RepaintConfig(), snapshot_every=0)
         if self.edit is not None:
             self.cancel()
         if self.masks is None:
             if self.selection is not None:
-                from core.select.masks import DEFAULT_THRESHOLD
-
                 self.masks_for_all_views(DEFAULT_THRESHOLD if threshold is None else threshold)
             else:
-                from core.select.masks import load_masks
-
                 try:
                     self.masks = load_masks(self.workspace.masks_dir)
                 except WorkspaceError:
                     raise UserError("nothing is selected",
                                     hint="drag a rectangle over an object (Select patch), then press Repaint") from None
         self._save_reconstruction()
-        self.edit = rep.RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
-                                       guidance=guidance, prompt=prompt, bg_prompt=bg_prompt, config=config,
-                                       device=self.device, sd_path=sd_path, clip_path=clip_path, color=color)
+        self.edit = RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
+                                   guidance=guidance, prompt=prompt, bg_prompt=bg_prompt, config=config,
+                                   device=self.device, sd_path=sd_path, clip_path=clip_path, color=color)
         self.stage1_frozen = True
         self.paused = False
         return {"started": time.time(), "guidance": self.edit.kind, "steps": int(self.edit.cfg.steps)}

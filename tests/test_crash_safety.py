@@ -199,7 +199,7 @@ def test_finished_edit_autosaves_a_version(tmp_path):
     assert rp.done and cur.kind == "edit" and cur.id != rec.id and rp.version.id == cur.id
     assert ws.version_path(rec).read_bytes() == rec_bytes
     f2, g2, header = restore_field(Checkpoint.load(ws.version_path(cur)), "cpu")
-    assert header["kind"] == "edit" and header["edit"]["steps"] == 3
+    assert header.kind == "edit" and header.edit.steps == 3
     o = torch.tensor([[0.0, 0.0, -3.0], [0.2, 0.1, -3.0]])
     d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
     with torch.no_grad():

@@ -43,7 +43,11 @@ class AnalyticEngine:
     def load(self, path, workspace=None):
         poses = [look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]) for a in np.linspace(0, 6, 8)]
         cams = Cameras.create(np.stack(poses), 60.0, 60.0, 40.0, 40.0, 80, 80)
-        return {"loaded": True, "name": "analytic", "format": "test", "views": 8, "cameras": cams}
+        from core.train.history import TrainingHistory
+
+        self.step = 3  # a reopened workspace: three steps trained before, their curve saved with it
+        past = TrainingHistory([1.0, 2.0, 3.0], [1.0, 0.5, 0.33], [10.0, 10.7, 11.1])
+        return {"loaded": True, "name": "analytic", "format": "test", "views": 8, "cameras": cams, "history": past}
 
     def can_train(self):
         return True
@@ -223,7 +227,8 @@ def test_open_renders_the_scene(editor, artifacts_dir):
     h, w = px.shape[:2]
     assert redness(px[h // 2 - 2:h // 2 + 2, w // 2 - 2:w // 2 + 2]).all()
     assert px[5, 5, 2] > 150 and px[5, 5, 0] < 60
-    assert editor.state.history.steps, "training status reached the UI"
+    assert editor.state.history.steps[:3] == [1.0, 2.0, 3.0], "the reopened workspace's curve is plotted"
+    assert len(editor.state.history.steps) > 3, "training status reached the UI"
 
 
 def test_orbit_changes_the_image(editor, artifacts_dir):
@@ -366,7 +371,7 @@ def test_an_idle_editor_sleeps_and_a_result_wakes_it(editor):
     editor.frame()
     assert time.perf_counter() - t0 > 0.5  # waited for events (1 s budget), nothing came
     editor.frame()
-    editor.call("clear_selection")  # a reply is on its way: the worker wakes the waiting UI
+    editor.call(editor.engine.clear_selection)  # a reply is on its way: the worker wakes the waiting UI
     t0 = time.perf_counter()
     editor.frame()
     assert time.perf_counter() - t0 < 0.5

@@ -125,3 +125,35 @@ def test_patch_threshold_repaint_undo(editor, artifacts_dir):
     shot = frames(editor, 1)
     save(shot, artifacts_dir, "05_undo")
     assert np.abs(view_pixels(editor, shot) - before).mean() < np.abs(edited - before).mean() / 2
+
+
+def test_sigterm_closes_the_editor_quietly(xvfb_display, scene_factory, tmp_path):
+    """`kill PID` on a running editor exits it cleanly: status 0 and no native stack trace (pycolmap's glog
+    handler printed one for every SIGTERM before its handler was put back)."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    path = scene_factory("demo", size=24, views=6, test_views=2)
+    ws = tmp_path / "ws"
+    env = {**os.environ, "DISPLAY": xvfb_display}
+    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "open", str(path), "--workspace", str(ws)],
+                            cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        t0 = time.perf_counter()
+        settings = ws / "settings.json"  # written once the worker opens the scene: the window is up
+        while not (settings.is_file() and json.loads(settings.read_text() or "{}").get("scene")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.perf_counter() - t0 < 300, "the editor did not open the scene"
+            time.sleep(0.2)
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "Aborted" not in err and "stack trace" not in err and "SIGTERM" not in err, err

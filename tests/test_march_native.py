@@ -7,7 +7,8 @@ import torch
 from core.render import march_native
 from core.render.analytic import SphereField
 from core.render.occupancy import OccupancyGrid, default_step
-from core.render.raymarch import Samples, cube, expand_segments, next_segments, plan_rays
+from core.render.box import cube
+from core.render.raymarch import Samples, expand_segments, next_segments, plan_rays
 from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.scene.cameras import Cameras, look_at
 

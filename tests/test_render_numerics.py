@@ -176,7 +176,12 @@ def test_empty_batch_keeps_the_graph():
     """No sample at all (rays miss): outputs still connect to the field so backward() works."""
     field = SphereField(radius=0.3)
     out = render_rays(field, None, torch.tensor([[0.0, 0.0, 3.0]]), torch.tensor([[1.0, 0.0, 0.0]]))
+    assert out["stats"]["samples"] == 0 and out["rgb"].shape == (1, 3) and out["opacity"].shape == (1,)
+    assert torch.equal(out["rgb"].detach(), torch.zeros(1, 3)) and float(out["opacity"]) == 0.0  # black, empty
+    assert out["rgb"].requires_grad
     out["rgb"].sum().backward()
+    params = list(field.parameters())
+    assert params and all(p.grad is not None and torch.count_nonzero(p.grad) == 0 for p in params)
 
 
 def _camera():

@@ -195,7 +195,7 @@ def test_ngp_field_step_and_version_restore(scene, tmp_path):
     f2, g2, header = restore_field(Checkpoint.load(ws.version_path(ws.current_version)), "cpu")
     for k, v in field.state_dict().items():
         torch.testing.assert_close(f2.state_dict()[k], v)
-    assert header["kind"] == "edit"
+    assert header.kind == "edit"
 
 
 def test_cli_bad_input(tmp_path, capsys, monkeypatch):

@@ -315,7 +315,6 @@ def test_object_centric_normalisation_finds_the_centre(tmp_path):
 
 
 def test_synthetic_scene_loads_with_its_cameras_and_depth(scene_factory):
-    pytest.importorskip("core.synth.generate")
     root = scene_factory("demo", size=32, views=6, seed=0, test_views=2)
     scene = load_scene(root)
     for split in ("train", "test"):
@@ -367,7 +366,6 @@ def test_synthetic_scene_loads_with_its_cameras_and_depth(scene_factory):
 def test_info_command_reports_the_scene(scene_factory, capsys, tmp_path):
     from app.cli import main
 
-    pytest.importorskip("core.synth.generate")
     root = scene_factory("demo", size=32, views=6, seed=0, test_views=2)
     assert main(["info", str(root), "--json", "--downscale", "2"]) == 0
     info = json.loads(capsys.readouterr().out)

@@ -292,7 +292,6 @@ def _tiny_field_config():
 
 @pytest.fixture(scope="module")
 def trained_ws(scene_factory, tmp_path_factory):
-    pytest.importorskip("core.field.field")
     from core.scene.loaders.detect import load_scene
     from core.teachers.cache import build_feature_store
     from core.teachers.depth_sparse import depth_for_scene
@@ -364,6 +363,7 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
 def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):
     from app.cli import main
     from core.train.checkpoint import Checkpoint
+    from core.train.header import CheckpointHeader, GridFacts
 
     ws, trainer, scene, gts = trained_ws
     w = int(scene.train.cameras.width[0])
@@ -378,7 +378,8 @@ def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):
         assert main(base + extra) == 2
         assert msg in capsys.readouterr().err
     nofeat = Workspace.create(tmp_path / "nofeat", {"scene": str(scene.root)})
-    Checkpoint({"x": torch.zeros(1)}, {"field_config": {"feature_dim": 0}}).save(
+    Checkpoint.of({"x": torch.zeros(1)}, CheckpointHeader(kind="stage1", field_config={"feature_dim": 0},
+                                                          grid=GridFacts(16))).save(
         nofeat.checkpoints_dir / "stage1.safetensors")
     assert main(["select", str(nofeat.root), "--view", "0", "--patch", "0,0,4,4", "--out", str(tmp_path / "o")]) == 2
     assert "without a feature head" in capsys.readouterr().err

@@ -195,7 +195,6 @@ def test_intake_handles_exif_gray_alpha_large_mixed_and_junk(tmp_path):
 def test_field_trained_on_recovered_poses(sfm_run):
     """A field fitted for 150 steps on the SfM poses (normalised into the field cube) reaches a stated PSNR on
     the held-out views: measured 14.9 dB at 99 steps and 16.7 dB at 171; unnormalised poses gave 5 dB."""
-    pytest.importorskip("core.field.field")
     from core.train.stage1 import Stage1Trainer, TrainConfig
     from core.workspace.workspace import Workspace
 

@@ -375,7 +375,6 @@ def test_analytic_sds_gradient_at_extreme_timesteps(frac):
 def test_tiny_sd_sds_at_extreme_timesteps(frac, tmp_path_factory):  # the tiny SD is built once per session
     """The SDS backend on the tiny random Stable Diffusion at t = 20 and 980: a finite fp32 loss, finite gradients
     on the render, and a clip bound that holds (clip_value 1: |grad on latents| <= 1)."""
-    pytest.importorskip("diffusers")
     from tiny_diffusion import cached
 
     from core.models.sd import load_stable_diffusion

@@ -182,34 +182,54 @@ def test_onnx_teacher_missing_or_invalid_model(tmp_path, monkeypatch):
         OnnxFeatureTeacher()
 
 
-# The default teacher measured 0.256 on "similar" at 64 px, 6 views (0.265 at 128 px, 16 views).
-SIMILAR_IOU_BOUND = 0.2
-
-
-def test_similar_preset_patch_query_iou_at_default_threshold(tmp_path):
-    """Four same-red objects told apart only by texture: the patch query on the edited (striped) cube
-    must reach a stated IoU at the default threshold. The issue's target is 0.90; the bound records
-    where the weight-free teacher stands today (about 0.27 at 128 px), so a regression fails."""
+def _patch_query(preset: str, tmp_path):
+    """(similarity maps, per-view object-id masks, edited object id) of the default teacher's patch query on the
+    edited object of a generated preset (64 px, 6 views), as `bench teacher` places it."""
     import json
     from pathlib import Path
 
     import cv2
 
-    from core.bench.teacher import mask_iou, place_patch
+    from core.bench.teacher import place_patch
     from core.scene.loaders.detect import load_scene
     from core.synth.generate import make_scene
 
-    root = make_scene("similar", tmp_path / "similar", size=64, views=6, seed=0, test_views=1)
+    root = make_scene(preset, tmp_path / preset, size=64, views=6, seed=0, test_views=1)
     scene = load_scene(root, splits=("train",))
     obj = int(json.loads((root / "gt" / "objects.json").read_text())["edited_object_id"])
-    gts = []
+    ids = []
     for n in scene.train.names:
         m = cv2.imread(str(root / "gt" / "train" / f"{Path(n).stem}_mask.png"), cv2.IMREAD_UNCHANGED)
-        gts.append((m if m.ndim == 2 else m[..., 0]) == obj)
+        ids.append(m if m.ndim == 2 else m[..., 0])
     t = DefaultFeatureTeacher()
     feats = [t(im) for im in scene.train.images]
-    view, (y0, y1, x0, x1) = place_patch(gts)
+    view, (y0, y1, x0, x1) = place_patch([m == obj for m in ids])
     q = l2_normalize(feats[view][y0:y1, x0:x1].reshape(-1, t.dim).mean(0))
-    got = mask_iou([f @ q for f in feats], gts, DEFAULT_THRESHOLD)
-    print(f"similar IoU at {DEFAULT_THRESHOLD}: {got:.3f}")
-    assert got > SIMILAR_IOU_BOUND
+    return [f @ q for f in feats], ids, obj
+
+
+def test_distinct_colours_patch_query_reaches_the_target_iou(tmp_path):
+    """On the demo preset (objects of distinct colours) the patch query on the edited object reaches the
+    issue's 0.90 IoU at the default threshold (measured 0.944)."""
+    from core.bench.teacher import mask_iou
+
+    sims, ids, obj = _patch_query("demo", tmp_path)
+    got = mask_iou(sims, [m == obj for m in ids], DEFAULT_THRESHOLD)
+    print(f"demo IoU at {DEFAULT_THRESHOLD}: {got:.3f}")
+    assert got > 0.90
+
+
+def test_similar_preset_patch_query_keeps_the_object_and_ranks_it_first(tmp_path):
+    """Four same-red objects told apart only by texture. The weight-free teacher does NOT reach the 0.90 IoU
+    target here (measured 0.256: its mask holds every red object), so this test asserts what it does do: the
+    mask keeps the edited object (recall measured 0.967) and the object's mean similarity is the highest of
+    all objects (measured 0.937 against 0.913, 0.896 and 0.782 for the other reds); telling textures apart
+    is left to a learned teacher (--feature-model)."""
+    sims, ids, obj = _patch_query("similar", tmp_path)
+    inside = sum(int(np.sum((s > DEFAULT_THRESHOLD) & (m == obj))) for s, m in zip(sims, ids))
+    recall = inside / sum(int(np.sum(m == obj)) for m in ids)
+    mean_sim = {int(i): float(np.mean(np.concatenate([s[m == i] for s, m in zip(sims, ids)])))
+                for i in np.unique(np.concatenate([m.ravel() for m in ids]))}
+    print(f"similar: recall {recall:.3f}, mean similarity per object {mean_sim}")
+    assert recall > 0.9
+    assert max(mean_sim, key=mean_sim.get) == obj

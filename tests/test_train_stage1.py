@@ -350,7 +350,7 @@ def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path
     ref = render_camera(tr_ref.field, tr_ref.grid, cams, 0, opts)
     fld, grid, header = restore_field(Checkpoint.load(path))
     got = render_camera(fld, grid, cams, 0, opts)
-    assert header["step"] == 20
+    assert header.step == 20
     assert torch.allclose(got["rgb"], ref["rgb"], atol=1e-6) and torch.allclose(got["depth"], ref["depth"], atol=1e-6)
     assert not torch.allclose(got["rgb"], render_camera(tr.field, tr.grid, cams, 0, opts)["rgb"], atol=1e-6)
     # The reconstruction becomes a version that later versions do not overwrite.

@@ -50,7 +50,10 @@ def test_a_drag_shows_frames_while_the_camera_keeps_moving():
         worker.stop()
     assert len(frames) >= 3, frames
     assert frames[-1].key == (i - 1,)  # the newest view is served once the drag ends
-    assert not any(what == "cancelled" for _, _, what in engine.log)
+    assert not any(what == "cancelled" for _, _, what in engine.log) and worker.cancelled == 0
+    # views the worker never reached (it was rendering an older one) are counted as dropped, never rendered
+    rendered = {c for c, _, _ in engine.log}
+    assert worker.dropped == i - len(rendered) > 0
 
 
 def test_a_move_cancels_the_refinement_of_a_resting_view():
@@ -66,4 +69,5 @@ def test_a_move_cancels_the_refinement_of_a_resting_view():
         worker.stop()
     first_scale = engine.log[0][1]
     assert any(c == "a" and s > first_scale and what == "cancelled" for c, s, what in engine.log), engine.log
+    assert worker.cancelled == sum(what == "cancelled" for _, _, what in engine.log) >= 1 and worker.dropped == 0
     assert frames and frames[0].key == ("b",)

@@ -15,6 +15,18 @@ import numpy as np
 HELP = "viewport latency in a real window on the demo scene while training (UI frame p50/p99, move/patch/slider latency)"
 
 
+def _slider_target(app) -> float:
+    """A threshold in the slider's range [0, 1] that moves the mask: the median of the newest selection's
+    similarity map (the farther of its quartiles when the median sits at the current threshold)."""
+    replies = [m for _, what, m in app.events if what == "reply:select" and getattr(m, "value", None) is not None]
+    if not replies:
+        raise RuntimeError("no selection reply to take a similarity map from")
+    sim = np.asarray(replies[-1].value, dtype=np.float64)
+    q1, med, q3 = np.quantile(sim, [0.25, 0.5, 0.75])
+    target = med if abs(med - app.state.threshold) > 0.02 else max((q1, q3), key=lambda q: abs(q - app.state.threshold))
+    return float(np.clip(target, 0.0, 1.0))
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", required=True, help="output JSON file")
     p.add_argument("--scene", default=None, help="scene to open (default: the demo scene)")
@@ -178,9 +190,11 @@ def _bench(args, engine) -> int:
             result["tool_to_feature_frame_ms"] = (time.perf_counter() - t_tool) * 1000
             result["patch_to_mask_ms"] = _select_ms(app, (0.45, 0.45, 0.55, 0.55))
             result["patch_drag_s"] = PATCH_DRAG_S
-            # Slider -> mask: frames until the screen changes after a threshold change.
+            # Slider -> mask: frames until the screen changes after a threshold change within the slider's range
+            # [0, 1], to the median similarity of the selected view, so about half its pixels change side.
             base = app.frame(capture=True)
-            app.state.threshold = -0.5 if app.state.threshold > 0 else 0.9
+            result["slider_from"], app.state.threshold = app.state.threshold, _slider_target(app)
+            result["slider_to"] = app.state.threshold
             n = 0
             while n < 10:
                 n += 1

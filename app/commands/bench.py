@@ -1,7 +1,7 @@
 """`repaint-nerf bench NAME ...`: benchmarks that write JSON and PNG plots.
 
-Each benchmark is a module in `core/bench/` (or `app/bench/` when it needs a window) with `HELP`,
-`add_arguments(parser)` and `run(args) -> int`.
+Each benchmark's driver is a module in `app/bench/` with `HELP`, `add_arguments(parser)` and `run(args) -> int`;
+its measurement lives in `core/bench/<name>.py` (functions that return dicts: no argparse, printing or plots).
 """
 from __future__ import annotations
 
@@ -14,15 +14,22 @@ HELP = "run a benchmark (recon, mask, edit, sdcost, viewport, ...) and write its
 
 
 def _benchmarks():
+    """(name, module) of every driver in app/bench, then (transitional, until every bench is split) the
+    core/bench modules that still carry their own driver (`add_arguments`) under a name app/bench lacks."""
     import app.bench
     import core.bench
 
-    seen = set()
-    for pkg in (app.bench, core.bench):  # a driver in app/bench wins over its measurement module in core/bench
-        for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
-            if not info.name.startswith("_") and info.name not in seen:
-                seen.add(info.name)
-                yield info.name, f"{pkg.__name__}.{info.name}"
+    names = set()
+    for info in sorted(pkgutil.iter_modules(app.bench.__path__), key=lambda m: m.name):
+        if not info.name.startswith("_"):
+            names.add(info.name)
+            yield info.name, f"app.bench.{info.name}"
+    for info in sorted(pkgutil.iter_modules(core.bench.__path__), key=lambda m: m.name):
+        if info.name.startswith("_") or info.name in names:
+            continue
+        mod = importlib.import_module(f"core.bench.{info.name}")
+        if hasattr(mod, "add_arguments"):
+            yield info.name, mod.__name__
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -44,33 +44,25 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from core.errors import UserError, WorkspaceError
-    from core.render.renderer import RenderOptions, render_camera
     from app.camera_control import CameraControl
+    from core.errors import UserError
+    from core.render.renderer import RenderOptions, render_camera
     from core.scene.cameras import Cameras
-    from core.scene.loaders.detect import load_workspace_scene
-    from core.train.checkpoint import Checkpoint
+    from core.session import open_trained
     from core.train.metrics import psnr
-    from core.train.stage1 import CHECKPOINT_NAME, restore_field, target_image
-    from core.workspace.workspace import Workspace
+    from core.train.stage1 import target_image
 
     if not args.scale > 0:
         raise UserError(f"--scale must be positive, got {args.scale}")
     if args.frames < 1:
         raise UserError(f"--frames must be at least 1, got {args.frames}")
-    ws = Workspace.open(args.workspace)
-    version = ws.current_version
-    ck_path = ws.version_path(version) if version else ws.checkpoints_dir / CHECKPOINT_NAME
-    if not ck_path.exists():
-        raise WorkspaceError("the workspace has no trained field yet", ws.root,
-                             hint=f"run: repaint-nerf train SCENE --workspace {ws.root}")
-    field, grid, header = restore_field(Checkpoint.load(ck_path), args.device)
-    scene = load_workspace_scene(ws.settings, header)
+    trained = open_trained(args.workspace, args.device)
+    field, grid, scene = trained.field, trained.grid, trained.scene
     device = next(field.parameters()).device
     bg = torch.tensor(scene.background or (1.0, 1.0, 1.0), dtype=torch.float32, device=device)
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
-    max_samples = int(header.get("train_config", {}).get("max_samples", 1024))  # render as it was trained
-    opts = RenderOptions(outputs=outputs, background=bg, perturb=False, max_samples=max_samples)
+    opts = RenderOptions(outputs=outputs, background=bg, perturb=False,
+                         max_samples=trained.header.max_samples)  # render as it was trained
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
 

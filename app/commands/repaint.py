@@ -119,25 +119,18 @@ def check_args(args: argparse.Namespace) -> None:
 def open_workspace(path: str, device=None):
     """(workspace, scene, field, grid, masks) of a workspace's current version and its selection's masks."""
     from core.errors import WorkspaceError
-    from core.scene.loaders.detect import load_workspace_scene
     from core.select.masks import load_masks
-    from core.train.checkpoint import Checkpoint
-    from core.train.stage1 import CHECKPOINT_NAME, restore_field
+    from core.session import open_trained, trained_path
     from core.workspace.workspace import Workspace
 
     ws = Workspace.open(path)
-    version = ws.current_version
-    ck_path = ws.version_path(version) if version else ws.checkpoints_dir / CHECKPOINT_NAME
-    if not ck_path.exists():
-        raise WorkspaceError("the workspace has no trained field yet", ws.root,
-                             hint=f"run: repaint-nerf train SCENE --workspace {ws.root}")
+    trained_path(ws)  # no field: that error first
     if not (ws.masks_dir / "index.json").is_file():
         raise WorkspaceError("the workspace has no selection to repaint", ws.root,
                              hint=f"run `repaint-nerf select {ws.root} --view I --patch x0,y0,x1,y1` first")
     masks = load_masks(ws.masks_dir)
-    field, grid, header = restore_field(Checkpoint.load(ck_path), device)
-    scene = load_workspace_scene(ws.settings, header)
-    return ws, scene, field, grid, masks
+    t = open_trained(ws, device)
+    return ws, t.scene, t.field, t.grid, masks
 
 
 def run(args: argparse.Namespace) -> int:

@@ -38,31 +38,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
 
-def load_trained(workspace, device=None):
-    """(field, grid, header, scene) of a workspace's current version (else its checkpoint); the scene's
-    normalisation is the one the field was trained in. A field without a feature head is a UserError."""
-    from core.errors import WorkspaceError
-    from core.scene.loaders.detect import load_workspace_scene
-    from core.scene.scene import Normalization
-    from core.train.checkpoint import Checkpoint
-    from core.train.stage1 import CHECKPOINT_NAME, restore_field
-
-    version = workspace.current_version
-    ck_path = workspace.version_path(version) if version else workspace.checkpoints_dir / CHECKPOINT_NAME
-    if not ck_path.exists():
-        raise WorkspaceError("the workspace has no trained field yet", workspace.root,
-                             hint=f"run: repaint-nerf train SCENE --workspace {workspace.root}")
-    ckpt = Checkpoint.load(ck_path)
-    if not int(ckpt.header.get("field_config", {}).get("feature_dim", 0) or 0):
-        raise WorkspaceError("this workspace's field was trained without a feature head, so it cannot select",
-                             ck_path, hint="train it again with teacher features (a feature head), then select")
-    field, grid, header = restore_field(ckpt, device)
-    scene = load_workspace_scene(workspace.settings, header)
-    if header.get("scene", {}).get("norm"):
-        scene.norm = Normalization.from_dict(header["scene"]["norm"])
-    return field, grid, header, scene
-
-
 def _patches(args) -> list:
     """The --patch/--add/--sub rectangles of --view; --add/--sub without --patch is a UserError."""
     from core.errors import UserError
@@ -110,12 +85,12 @@ def run(args: argparse.Namespace) -> int:
     from core.select.autothreshold import selection_auto_threshold
     from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
     from core.select.selection import Selection
-    from core.workspace.workspace import Workspace
+    from core.session import open_trained
 
     threshold = None if args.threshold is None else check_threshold(args.threshold)
     patches = _patches(args)
-    ws = Workspace.open(args.workspace)
-    field, grid, header, scene = load_trained(ws, args.device)
+    trained = open_trained(args.workspace, args.device, need_features=True)
+    ws, scene, field, grid = trained.workspace, trained.scene, trained.field, trained.grid
     cams = scene.field_cameras("train")
     _check_patches(patches, cams, args.view)
     from core.teachers.sam_refine import workspace_refiner
@@ -126,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     cache = ViewCache(field, grid, cams)
     sel = Selection(threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                     cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
-                    teacher=str(header.get("teacher") or ws.settings.get("teacher") or "default"))
+                    teacher=str(ws.settings.get("teacher") or "default"))
     if args.text is not None:
         from core.teachers.text import workspace_text_query
 

@@ -100,13 +100,12 @@ def check_model_flags(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.errors import SceneError, WorkspaceError
+    from core.errors import SceneError
     from core.scene.loaders.common import DEFAULT_MAX_SIZE, check_max_size
-    from core.scene.loaders.detect import load_scene
+    from core.session import LoadAs, Teachers, start_reconstruction
     from core.train.budget import CommandBudget
     from core.train.progress import ProgressBar
-    from core.train.stage1 import Stage1Trainer, TrainConfig
-    from core.workspace.workspace import Workspace
+    from core.train.stage1 import TrainConfig
 
     scene_path = Path(args.scene)
     if not scene_path.exists():
@@ -118,16 +117,6 @@ def run(args: argparse.Namespace) -> int:
     max_size = check_max_size(DEFAULT_MAX_SIZE if args.max_size is None else args.max_size)
     feature_size = parse_size(args.feature_size)
     check_model_flags(args)
-
-    scene_key = str(scene_path.resolve())
-    ws = Workspace.open_or_create(args.workspace)
-    old = ws.settings.get("scene")
-    if old and old != scene_key and ws.original_version is not None:
-        raise WorkspaceError(f"this workspace holds a reconstruction of another scene ({old})", ws.root,
-                             hint="pass a new folder to --workspace")
-    ws.update_settings(scene=scene_key, downscale=args.downscale, kind=args.kind, max_size=max_size)
-
-    scene = load_scene(scene_path, args.downscale, kind=args.kind, workspace=args.workspace, max_size=max_size)  # SfM of a photo folder is cached there
     cfg = TrainConfig(seed=args.seed, checkpoint_every_s=args.checkpoint_every)
     if args.rays:
         cfg.rays_per_batch = args.rays
@@ -135,17 +124,18 @@ def run(args: argparse.Namespace) -> int:
         cfg.lr = args.lr
     if args.max_samples:
         cfg.max_samples = args.max_samples
-    from core.teachers.stage1_targets import depth_priors, feature_targets
+    teachers = Teachers(features=not args.no_features, depth=not args.no_depth,  # paper Eq. s1
+                        feature_model=args.feature_model, feature_size=feature_size, feature_norm=args.feature_norm,
+                        depth_model=args.depth_model)
 
-    notes: list[str] = []
-    features = None if args.no_features else feature_targets(  # paper Eq. s1: the feature field
-        scene, ws, model=args.feature_model, input_size=feature_size, norm=args.feature_norm, notes=notes)
-    depth = None if args.no_depth else depth_priors(scene, ws, notes, model=args.depth_model)
-    for note in notes:
+    rec = start_reconstruction(scene_path, args.workspace, train_cfg=cfg, prefer_saved_config=False,
+                               teachers=teachers, load_as=LoadAs(args.downscale, args.kind, max_size), device=args.device,
+                               resume=args.resume, at_current_version=False)
+    scene, trainer = rec.scene, rec.trainer
+    for note in rec.notes:
         print(note, file=sys.stderr)
-    trainer = Stage1Trainer(scene, ws, cfg, device=args.device, feature_targets=features, depth_priors=depth)
     if args.resume:
-        if trainer.resume():
+        if rec.resumed:
             print(f"resumed at step {trainer.step_count} ({trainer.train_seconds:.0f} s trained)")
         else:
             print("no checkpoint to resume from; starting from scratch")

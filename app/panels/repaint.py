@@ -111,11 +111,11 @@ def draw(app) -> None:
             app.set_training(not s.training)
         imgui.same_line()
         if imgui.button("Cancel"):
-            app.call("cancel")
+            app.call(app.engine.cancel)
             s.repaint_running = False
     if imgui.button("Undo"):
-        app.call("undo")
+        app.call(app.engine.undo)
     remember_item(app, "undo")
     imgui.same_line()
     if imgui.button("Redo"):
-        app.call("redo")
+        app.call(app.engine.redo)

@@ -43,7 +43,7 @@ def draw(app) -> None:
         implot.plot_line("loss x100", xs, np.asarray(h.loss, dtype=np.float64) * 100.0)
         implot.end_plot()
     if imgui.button("Save project"):
-        app.call("save")
+        app.call(app.engine.save)
     _, s.export_path = imgui.input_text("PNG", s.export_path)
     imgui.same_line()
     if imgui.button("Export view"):

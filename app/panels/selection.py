@@ -40,7 +40,7 @@ def draw(app) -> None:
         app.clear_selection()
     imgui.same_line()
     if imgui.button("Apply to all views"):
-        app.call("masks_for_all_views", float(s.threshold))
+        app.call(app.engine.masks_for_all_views, float(s.threshold))
     if s.masks_done is not None:
         imgui.text(f"masks for {s.masks_done} views saved")
 
@@ -79,6 +79,6 @@ def _draw_text_query(app) -> None:
                           "selection needs a workspace trained with a CLIP-aligned --feature-model (LSeg)")
     if imgui.button("Select by text") and s.text_query.strip() and app.camera is not None:
         mode = "add" if imgui.get_io().key_shift and s.has_selection else "new"
-        app.call("select_text", app.camera.cameras(*app.view_size), s.text_query, mode, s.clip_path or None)
+        app.call(app.engine.select_text, app.camera.cameras(*app.view_size), s.text_query, mode, s.clip_path or None)
     remember_item(app, "select_text")
     imgui.tree_pop()

@@ -57,21 +57,10 @@ class ExportSource:
 
 def open_workspace(path: str | Path, device: str | None = None) -> ExportSource:
     """The current version of a trained workspace (else its stage-1 checkpoint) with its scene."""
-    from core.scene.loaders.detect import load_workspace_scene
-    from core.train.checkpoint import Checkpoint
-    from core.train.stage1 import CHECKPOINT_NAME, restore_field
-    from core.workspace.workspace import Workspace
+    from core.session import open_trained
 
-    ws = Workspace.open(path)
-    version = ws.current_version
-    ck_path = ws.version_path(version) if version else ws.checkpoints_dir / CHECKPOINT_NAME
-    if not ck_path.exists():
-        raise WorkspaceError("the workspace has no trained field yet", ws.root,
-                             hint=f"run: repaint-nerf train SCENE --workspace {ws.root}")
-    field, grid, header = restore_field(Checkpoint.load(ck_path), device)
-    scene = load_workspace_scene(ws.settings, header)
-    max_samples = int(header.get("train_config", {}).get("max_samples", 1024))
-    return ExportSource(field, grid, scene, ws, max_samples)
+    t = open_trained(path, device)
+    return ExportSource(t.field, t.grid, t.scene, t.workspace, t.header.max_samples)
 
 
 def from_engine(engine) -> ExportSource:

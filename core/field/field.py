@@ -21,6 +21,9 @@ from core.field.hashgrid import GridSpec
 OUTPUTS = ("sigma", "rgb", "feature")
 
 
+_GRID = GridSpec()
+
+
 @dataclass
 class FieldConfig:
     """Everything that shapes a field; JSON-serialisable (dataclasses.asdict) and saved with checkpoints.
@@ -33,11 +36,12 @@ class FieldConfig:
     the small MLP. Pick "separate" when the feature loss must not move density and colour.
     """
 
-    levels: int = 16
-    features_per_level: int = 2
-    log2_table: int = 19
-    base_res: int = 16
-    finest_res: int = 2048
+    # the colour/density grid: GridSpec's defaults (instant-ngp's), stated once there
+    levels: int = _GRID.levels
+    features_per_level: int = _GRID.features
+    log2_table: int = _GRID.log2_table
+    base_res: int = _GRID.base_res
+    finest_res: int = _GRID.finest_res
     hidden: int = 64
     geo_feat_dim: int = 15
     color_hidden_layers: int = 1
@@ -52,7 +56,7 @@ class FieldConfig:
     feature_hidden: int = 64
     encoding_impl: str = "auto"  # auto | reference | vectorized | indexed | compiled | native
     compile: bool = True  # $REPAINT_NERF_COMPILE=0 overrides to eager
-    bound: float = 1.0  # field cube half-size
+    bound: float = _GRID.bound  # field cube half-size
     warp: dict | None = None  # unbounded / forward scenes: a core.field.contraction spec (None: bounded)
 
     def grid_spec(self) -> GridSpec:

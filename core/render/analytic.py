@@ -61,24 +61,30 @@ class BoxField(AnalyticField):
         return ((x >= self.lo) & (x <= self.hi)).all(dim=-1).to(x.dtype)
 
 
-class SphereField(AnalyticField):
+class _CentredField(AnalyticField):
+    """A density around a centre point (a buffer, so it moves with the field's device)."""
+
+    def __init__(self, center: Sequence[float], **kw):
+        super().__init__(**kw)
+        self.register_buffer("center", torch.as_tensor(center, dtype=torch.float32))
+
+
+class SphereField(_CentredField):
     """Uniform density inside a ball."""
 
     def __init__(self, center: Sequence[float] = (0.0, 0.0, 0.0), radius: float = 0.5, **kw):
-        super().__init__(**kw)
-        self.register_buffer("center", torch.as_tensor(center, dtype=torch.float32))
+        super().__init__(center, **kw)
         self.radius = float(radius)
 
     def shape(self, x: Tensor) -> Tensor:
         return ((x - self.center).norm(dim=-1) <= self.radius).to(x.dtype)
 
 
-class GaussianField(AnalyticField):
+class GaussianField(_CentredField):
     """Smooth density sigma * exp(-|x - c|^2 / (2 s^2)), cut to zero below 1e-6 of the peak."""
 
     def __init__(self, center: Sequence[float] = (0.0, 0.0, 0.0), scale: float = 0.2, **kw):
-        super().__init__(**kw)
-        self.register_buffer("center", torch.as_tensor(center, dtype=torch.float32))
+        super().__init__(center, **kw)
         self.scale = float(scale)
 
     def shape(self, x: Tensor) -> Tensor:

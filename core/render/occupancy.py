@@ -15,6 +15,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from core.device import get_device
+from core.render.box import intersect_box
 from core.errors import UserError
 
 MIN_OPTICAL_THICKNESS = 0.01  # instant-ngp: a cell is empty when sigma * min_step stays below this
@@ -277,8 +278,6 @@ class OccupancyGrid:
         it, and a pruned cell is never sampled, so the field never does. The trainer reopens the path of
         the rays it renders worst, giving the field one update period to put density there.
         Returns the number of distinct cells queued."""
-        from core.render.raymarch import intersect_box
-
         if origins.shape[0] == 0:
             return 0
         o = origins.to(self.device, torch.float32).reshape(-1, 3)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from core.render.box import intersect_box
 from core.render.occupancy import OccupancyGrid
 
 
@@ -70,21 +71,6 @@ class Samples:
     def select(self, idx: Tensor) -> "Samples":
         """The subset at `idx` (a bool mask or sorted indices keeps the packed order)."""
         return Samples(self.ray[idx], self.t_start[idx], self.t_end[idx], self.t[idx], self.x[idx])
-
-
-def intersect_box(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
-    """Slab test against the box [lo, hi] (each (3,)): (t_min, t_max) per ray; a miss has t_max <= t_min."""
-    d = torch.where(dirs.abs() < 1e-12, torch.copysign(torch.full_like(dirs, 1e-12), dirs), dirs)
-    inv = 1.0 / d
-    t0 = (lo - origins) * inv
-    t1 = (hi - origins) * inv
-    return torch.minimum(t0, t1).amax(dim=-1), torch.maximum(t0, t1).amin(dim=-1)
-
-
-def cube(extent: float, device=None) -> tuple[Tensor, Tensor]:
-    """The box [-extent, extent]^3 as (lo, hi)."""
-    e = torch.full((3,), float(extent), device=device)
-    return -e, e
 
 
 def plan_rays(origins: Tensor, dirs: Tensor, lo: Tensor, hi: Tensor, step: float, max_samples: int,

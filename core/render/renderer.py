@@ -20,9 +20,9 @@ from core.device import synchronize
 from core.errors import UserError
 from core.render import march_native
 from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
+from core.render.box import cube
 from core.render.occupancy import OccupancyGrid, default_step
-from core.render.raymarch import (RayPlan, Samples, cat_samples, cube, expand_segments, next_segments,
-                                  plan_rays)
+from core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
 from core.scene.cameras import Cameras
 
 OUTPUTS = ("rgb", "depth", "opacity", "feature")

@@ -383,22 +383,18 @@ class RepaintTrainer:
     # -- saving ---------------------------------------------------------------------------------------
     def checkpoint(self) -> Checkpoint:
         """The edited field and grid in the stage-1 checkpoint layout (loads with restore_field)."""
-        from core.train.stage1 import scene_facts
+        from core.train.header import EDIT, CheckpointHeader, EditFacts, GridFacts, SceneFacts
 
         tensors = {f"field.{k}": v.detach().cpu() for k, v in self.field.state_dict().items()}
         grid_t, grid_rest = split_state(self.grid.state_dict())
         tensors.update({f"grid.{k}": v for k, v in grid_t.items()})
-        header = {
-            "kind": "edit",
-            "field_config": dataclasses.asdict(self.field.cfg),
-            "grid": {"resolution": self.grid.resolution, "cascades": self.grid.cascades, "bound": self.grid.bound,
-                     "state": grid_rest},
-            "scene": scene_facts(self.scene),
-            "edit": {"guidance": self.kind, "prompt": self.prompt, "bg_prompt": self.bg_prompt,
-                     "steps": self.step_count, "skipped_steps": self.skipped_steps,
-                     "config": dataclasses.asdict(self.cfg)},
-        }
-        return Checkpoint(tensors, header)
+        header = CheckpointHeader(
+            kind=EDIT, field_config=dataclasses.asdict(self.field.cfg),
+            grid=GridFacts(self.grid.resolution, self.grid.cascades, self.grid.bound, grid_rest),
+            scene=SceneFacts.of(self.scene),
+            edit=EditFacts(guidance=self.kind, prompt=self.prompt, bg_prompt=self.bg_prompt, steps=self.step_count,
+                           skipped_steps=self.skipped_steps, config=dataclasses.asdict(self.cfg)))
+        return Checkpoint.of(tensors, header)
 
     def finish(self) -> None:
         """Mark the edit done and save it as a new workspace version (when there is a workspace)."""

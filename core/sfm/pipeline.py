@@ -9,8 +9,7 @@ import contextlib
 from collections.abc import Callable
 from pathlib import Path
 
-import pycolmap
-
+from core.colmap import pycolmap
 from core.errors import SceneError, UserError
 
 MATCHERS = ("auto", "exhaustive", "sequential")

@@ -14,18 +14,29 @@ from typing import Any
 import torch
 
 from core.errors import WorkspaceError
+from core.train.header import DAMAGED_HINT, FORMAT_VERSION, HEADER_KEY, CheckpointHeader, check_format
 from core.workspace import atomic
 
-CHECKPOINT_FORMAT = 1
-HEADER_KEY = "repaint_nerf"
+CHECKPOINT_FORMAT = FORMAT_VERSION  # the version written; older ones are read (core.train.header)
 
 
 @dataclass
 class Checkpoint:
-    """Flat tensors (names like 'field.x', 'grid.x', 'optim.3.exp_avg') and a JSON-able header."""
+    """Flat tensors (names like 'field.x', 'grid.x', 'optim.3.exp_avg') and a JSON-able header (the raw
+    container: `info` reads it through the schema, `core.train.header.CheckpointHeader`)."""
 
     tensors: dict[str, torch.Tensor] = field(default_factory=dict)
     header: dict[str, Any] = field(default_factory=dict)
+
+    @staticmethod
+    def of(tensors: dict[str, torch.Tensor], header: CheckpointHeader) -> "Checkpoint":
+        """A checkpoint with a schema header (what the trainers write)."""
+        return Checkpoint(tensors, header.to_dict())
+
+    @property
+    def info(self) -> CheckpointHeader:
+        """The header read through the schema (older formats upgraded)."""
+        return CheckpointHeader.from_dict(self.header)
 
     def save(self, path: str | Path) -> None:
         """Write atomically to `path` (the previous file stays intact if anything fails)."""
@@ -34,36 +45,44 @@ class Checkpoint:
 
     @staticmethod
     def load(path: str | Path, device: torch.device | str = "cpu") -> "Checkpoint":
-        """Read a checkpoint; raises WorkspaceError for a missing, corrupt or mismatched-version file."""
-        from safetensors import safe_open
-
+        """Read a checkpoint; raises WorkspaceError for a missing, corrupt or unreadable-version file."""
         path = Path(path)
-        hint = "the file is damaged or from another program version: delete it and train again"
-        if not path.is_file():
-            raise WorkspaceError("checkpoint not found", path, hint="train first (repaint-nerf train)")
-        try:
-            tensors = {}
-            with safe_open(str(path), framework="pt", device=str(device)) as f:
-                meta = f.metadata() or {}
-                for k in f.keys():
-                    tensors[k] = f.get_tensor(k)
-        except Exception as exc:  # safetensors raises its own error types for truncated/garbled files
-            raise WorkspaceError(f"cannot read this checkpoint ({exc.__class__.__name__}: {exc})", path,
-                                 hint=hint) from exc
-        try:
-            header = json.loads(meta[HEADER_KEY])
-        except (KeyError, json.JSONDecodeError) as exc:
-            raise WorkspaceError("this safetensors file has no repaint-nerf header", path, hint=hint) from exc
-        fmt = header.get("format")
-        if fmt != CHECKPOINT_FORMAT:
-            raise WorkspaceError(f"checkpoint format version {fmt!r}; this program reads version "
-                                 f"{CHECKPOINT_FORMAT}", path, hint=hint)
+        tensors: dict[str, torch.Tensor] = {}
+        header = _read(path, tensors, device)
         return Checkpoint(tensors, header)
 
     def section(self, prefix: str) -> dict[str, torch.Tensor]:
         """The tensors under 'prefix.' with the prefix removed."""
         p = prefix + "."
         return {k[len(p):]: v for k, v in self.tensors.items() if k.startswith(p)}
+
+
+def read_header(path: str | Path) -> CheckpointHeader:
+    """The header of a checkpoint or version file, without reading its tensors."""
+    path = Path(path)
+    return CheckpointHeader.from_dict(_read(path, None), path)
+
+
+def _read(path: Path, tensors: dict | None, device: torch.device | str = "cpu") -> dict:
+    """The raw header of a checkpoint file (format checked), filling `tensors` unless it is None."""
+    from safetensors import safe_open
+
+    if not path.is_file():
+        raise WorkspaceError("checkpoint not found", path, hint="train first (repaint-nerf train)")
+    try:
+        with safe_open(str(path), framework="pt", device=str(device)) as f:
+            meta = f.metadata() or {}
+            for k in f.keys() if tensors is not None else ():
+                tensors[k] = f.get_tensor(k)
+    except Exception as exc:  # safetensors raises its own error types for truncated/garbled files
+        raise WorkspaceError(f"cannot read this checkpoint ({exc.__class__.__name__}: {exc})", path,
+                             hint=DAMAGED_HINT) from exc
+    try:
+        header = json.loads(meta[HEADER_KEY])
+    except (KeyError, json.JSONDecodeError) as exc:
+        raise WorkspaceError("this safetensors file has no repaint-nerf header", path, hint=DAMAGED_HINT) from exc
+    check_format(header.get("format") if isinstance(header, dict) else None, path)
+    return header
 
 
 def split_state(state: dict) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

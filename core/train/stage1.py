@@ -26,7 +26,9 @@ from core.render.renderer import RenderOptions, render_camera, render_rays
 from core.train import losses
 from core.train.adan import grads_finite
 from core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
+from core.train.header import STAGE1, CheckpointHeader, GridFacts, SceneFacts
 from core.train.health import SpikeDetector
+from core.train.history import TrainingHistory
 from core.train.metrics import mse_to_psnr, psnr, ssim
 from core.train.schedule import LRSchedule
 
@@ -214,6 +216,7 @@ class Stage1Trainer:
         self.train_seconds = 0.0
         self.skipped_steps = 0
         self.spikes = SpikeDetector()
+        self.history = TrainingHistory()  # loss/PSNR per step, saved with checkpoints (the editor's plot)
         self.profile = False
         self.last_times: dict = {}
         bg = scene.background
@@ -431,6 +434,7 @@ class Stage1Trainer:
         info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt,
                     skipped=not finite, skipped_steps=self.skipped_steps,
                     spike=self.spikes.update(float(total.detach())), spikes=self.spikes.spikes)
+        self.history.add(info)
         stats = out.get("stats") or {}
         for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
@@ -573,34 +577,28 @@ class Stage1Trainer:
         tensors.update({f"optim.{k}": v for k, v in opt_t.items()})
         tensors["rng.sampler"] = self.gen.get_state()
         tensors["rng.torch"] = torch.get_rng_state()
-        header = {
-            "kind": "stage1",
-            "step": self.step_count,
-            "train_seconds": self.train_seconds,
-            "field_config": dataclasses.asdict(self.field_cfg),
-            "train_config": dataclasses.asdict(self.cfg),
-            "grid": {"resolution": self.cfg.grid_resolution, "cascades": self.cfg.grid_cascades,
-                     "bound": float(getattr(self.field_cfg, "bound", 1.0)), "state": grid_rest},
-            "optim": opt_meta,
-            "budget": {"steps": self.budget_steps, "seconds": self.budget_seconds},
-            "scene": scene_facts(self.scene),
-        }
-        return Checkpoint(tensors, header)
+        header = CheckpointHeader(
+            kind=STAGE1, step=self.step_count, train_seconds=self.train_seconds,
+            field_config=dataclasses.asdict(self.field_cfg), train_config=dataclasses.asdict(self.cfg),
+            grid=GridFacts(self.cfg.grid_resolution, self.cfg.grid_cascades,
+                           float(getattr(self.field_cfg, "bound", 1.0)), grid_rest),
+            optim=opt_meta, budget_steps=self.budget_steps, budget_seconds=self.budget_seconds,
+            scene=SceneFacts.of(self.scene), history=self.history)
+        return Checkpoint.of(tensors, header)
 
     def load(self, ckpt: Checkpoint) -> None:
         """Restore a state written by `checkpoint` (same field config) to resume training."""
-        h = ckpt.header
+        h = ckpt.info
         self.field.load_state_dict(ckpt.section("field"))
-        self.grid.load_state_dict({**ckpt.section("grid"), **h["grid"].get("state", {})})
+        self.grid.load_state_dict({**ckpt.section("grid"), **h.grid.state})
         load_optimizer_state(self.optimizer, {k: v.to(self.device) for k, v in ckpt.section("optim").items()},
-                             h["optim"])
+                             h.optim or {})
         self.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]
         self.gen.set_state(ckpt.tensors["rng.sampler"].cpu())
         torch.set_rng_state(ckpt.tensors["rng.torch"].cpu())
-        self.step_count = int(h["step"])
-        self.train_seconds = float(h.get("train_seconds", 0.0))
-        b = h.get("budget") or {}
-        self.budget_steps, self.budget_seconds = b.get("steps"), b.get("seconds")
+        self.step_count, self.train_seconds = h.step, h.train_seconds
+        self.budget_steps, self.budget_seconds = h.budget_steps, h.budget_seconds
+        self.history = h.history
 
     def checkpoint_path(self) -> Path:
         if self.workspace is None:
@@ -625,19 +623,12 @@ class Stage1Trainer:
         """Load the field and grid of a saved version (undo/redo); the optimiser starts afresh."""
         ck = Checkpoint.load(path, self.device)
         self.field.load_state_dict(ck.section("field"))
-        self.grid.load_state_dict({**ck.section("grid"), **ck.header["grid"].get("state", {})})
+        self.grid.load_state_dict({**ck.section("grid"), **ck.info.grid.state})
         self.optimizer = self._make_optimizer()
 
     def save_version(self, name: str = "reconstruction"):
         """Save the current field as a new stage-1 version of the workspace (never overwritten by edits)."""
         return self.workspace.save_version(name, self.checkpoint(), kind="stage1")
-
-
-def scene_facts(scene) -> dict:
-    """What a checkpoint records about its scene (to reload it and map depths back to world units)."""
-    return {"root": str(scene.root), "format": scene.format, "kind": scene.kind,
-            "norm": scene.norm.to_dict(),
-            "background": None if scene.background is None else [float(c) for c in scene.background]}
 
 
 def spread_views(n: int, k: int) -> list[int]:
@@ -664,13 +655,14 @@ def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
 
 
 def restore_field(ckpt: Checkpoint, device: torch.device | str | None = None):
-    """(field, grid, header) from a checkpoint or version, ready to render (eval mode)."""
+    """(field, grid, header) from a checkpoint or version, ready to render (eval mode); the header is a
+    `core.train.header.CheckpointHeader`."""
     device = device if isinstance(device, torch.device) else get_device(device)
-    cfg = field_config_from_dict(ckpt.header["field_config"])
-    fld, _ = make_field(cfg, device)
+    header = ckpt.info
+    fld, _ = make_field(header.field_cfg(), device)
     fld.load_state_dict({k: v.to(device) for k, v in ckpt.section("field").items()})
-    g = ckpt.header["grid"]
-    grid = grid_for_field(fld, g["resolution"], g["cascades"], device=device)
-    grid.load_state_dict({**{k: v.to(device) for k, v in ckpt.section("grid").items()}, **g.get("state", {})})
+    g = header.grid
+    grid = grid_for_field(fld, g.resolution, g.cascades, device=device)
+    grid.load_state_dict({**{k: v.to(device) for k, v in ckpt.section("grid").items()}, **g.state})
     fld.eval()
-    return fld, grid, ckpt.header
+    return fld, grid, header

@@ -45,6 +45,11 @@ class VersionInfo:
     kind: str = "stage1"  # "stage1" (a reconstruction) or "edit"
 
 
+def _folder(name: str) -> property:
+    """A read-only property: the workspace's folder `name` (one of SUBDIRS)."""
+    return property(lambda self: self.root / name, doc=f"WS/{name}/")
+
+
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -137,25 +142,11 @@ class Workspace:
     def path(self, *parts: str) -> Path:
         return self.root.joinpath(*parts)
 
-    @property
-    def checkpoints_dir(self) -> Path:
-        return self.root / "checkpoints"
-
-    @property
-    def teachers_dir(self) -> Path:
-        return self.root / "teachers"
-
-    @property
-    def selections_dir(self) -> Path:
-        return self.root / "selections"
-
-    @property
-    def masks_dir(self) -> Path:
-        return self.root / "masks"
-
-    @property
-    def versions_dir(self) -> Path:
-        return self.root / "versions"
+    checkpoints_dir = _folder("checkpoints")
+    teachers_dir = _folder("teachers")
+    selections_dir = _folder("selections")
+    masks_dir = _folder("masks")
+    versions_dir = _folder("versions")
 
     @property
     def settings(self) -> dict:

@@ -11,8 +11,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
+from core.colmap import pycolmap
 from core.errors import SceneError
 from core.scene.cameras import Cameras, opencv_to_opengl
 from core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted

@@ -113,16 +113,3 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     scene.extra.setdefault("max_size", max_size)
     normalize_scene(scene)
     return scene
-
-
-def load_workspace_scene(settings: dict, header: dict | None = None, workspace: str | Path | None = None) -> Scene:
-    """The scene a workspace was trained on, loaded as it was then: its path, downscale and scene kind
-    (from the checkpoint header when there is one, else the workspace settings)."""
-    facts = (header or {}).get("scene") or {}
-    root = settings.get("scene") or facts.get("root")
-    if not root:
-        raise UserError("the workspace does not say which scene it holds",
-                        hint="train it first: repaint-nerf train SCENE --workspace WS")
-    kind = facts.get("kind") or settings.get("kind")
-    return load_scene(Path(root), float(settings.get("downscale", 1.0)), kind=kind, workspace=workspace,
-                      max_size=int(settings.get("max_size", DEFAULT_MAX_SIZE)))

@@ -10,7 +10,8 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-import pycolmap
+
+from core.colmap import pycolmap
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 

@@ -125,11 +125,11 @@ def run_soak(requests: int = 300, size: int = 16, scale: float = 0.5, seed: int 
             time.sleep(rng.uniform(0.0, 0.03))  # the camera rests: the worker trains
             r = rng.random()
             if r < 0.03:
-                worker.call("pause")
-                worker.call("resume")
+                worker.call(engine.pause)
+                worker.call(engine.resume)
                 stats["pauses"] += 1
             elif r < 0.06:
-                worker.call("info")
+                worker.call(engine.info)
                 stats["commands"] += 1
             drain()
             if rss_start is None and stats["requests"] >= max(1, requests // 20):
@@ -148,7 +148,9 @@ def run_soak(requests: int = 300, size: int = 16, scale: float = 0.5, seed: int 
             tmp.cleanup()
     lat = np.asarray(latencies) if latencies else np.zeros(1)
     rss_start = rss_start if rss_start is not None else rss_end
-    return {**stats, "cancelled_or_dropped": stats["requests"] - len(answered), "answered": len(answered),
+    cancelled, dropped = worker.cancelled, worker.dropped  # counted by the worker where it cancels or skips
+    return {**stats, "cancelled": cancelled, "dropped": dropped, "cancelled_or_dropped": cancelled + dropped,
+            "answered": len(answered),
             "train_steps": last_step, "crashes": crashes, "worker_alive": alive,
             "seconds": time.perf_counter() - t0, "latency_ms_p50": float(np.percentile(lat, 50)),
             "latency_ms_p99": float(np.percentile(lat, 99)), "rss_start_mb": rss_start, "rss_end_mb": rss_end,
