@@ -111,15 +111,15 @@ class EditorApp:
         if self.camera is not None:
             self.call(self.engine.export_png, self.camera.cameras(*self.view_size), path)
 
-    def start_export(self, kind: str, *args: Any, **kwargs: Any) -> None:
-        """Run `engine.export_<kind>` on the worker with a progress bar and Cancel (one export at a time)."""
+    def start_export(self, export: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+        """Run an engine export (e.g. `engine.export_mesh`) on the worker with a progress bar and Cancel (one
+        export at a time)."""
         if self.state.export_job is not None:
             self.state.say("an export is running; wait for it or cancel it", "error")
             return
+        kind = export.__name__.removeprefix("export_")
         target = str(args[-1] if kind == "turntable" else args[0])
         job = self.state.export_job = ExportJob(kind, target)
-        export = {"mesh": self.engine.export_mesh, "points": self.engine.export_points,
-                  "dataset": self.engine.export_dataset, "turntable": self.engine.export_turntable}[kind]
         self.call(export, *args, cancel=job.cancelled, progress=job.report, **kwargs)
 
     def _video_size(self) -> tuple[int, int]:
@@ -148,7 +148,7 @@ class EditorApp:
 
     def export_turntable(self, path: str, frames: int = 48) -> None:
         if self.camera is not None:
-            self.start_export("turntable", self._orbit_cameras(frames), path)  # the Scene panel's button
+            self.start_export(self.engine.export_turntable, self._orbit_cameras(frames), path)  # the Scene panel's button
 
     def export_video(self, path: str) -> None:
         """A video along the recorded camera path (two or more key views), else the turntable."""
@@ -156,7 +156,7 @@ class EditorApp:
             return
         keys = len(self.state.path_keys)
         cams = self._path_cameras() if keys >= 2 else self._orbit_cameras(int(self.state.path_frames))
-        self.start_export("turntable", cams, path)
+        self.start_export(self.engine.export_turntable, cams, path)
 
     def add_path_key(self) -> None:
         """Record the current view as a key view of the camera path."""

@@ -103,7 +103,7 @@ def test_missing_optional_package_is_reported(engine, monkeypatch):
     reason = Engine.capabilities()["sd"]
     assert "diffusers" in reason and "not available" in reason
     with pytest.raises(FeatureUnavailable, match="diffusers"):
-        engine.repaint("a blue ball", backend="sd")
+        engine.repaint("a blue ball", guidance="sd")
 
 
 def test_selection_needs_a_feature_head(scene_factory, tmp_path):

@@ -14,30 +14,18 @@ HELP = "run a benchmark (recon, mask, edit, sdcost, viewport, ...) and write its
 
 
 def _benchmarks():
-    """(name, module) of every driver in app/bench, then (transitional, until every bench is split) the
-    core/bench modules that still carry their own driver (`add_arguments`) under a name app/bench lacks."""
+    """(name, module) of every driver in app/bench."""
     import app.bench
-    import core.bench
 
-    names = set()
     for info in sorted(pkgutil.iter_modules(app.bench.__path__), key=lambda m: m.name):
         if not info.name.startswith("_"):
-            names.add(info.name)
             yield info.name, f"app.bench.{info.name}"
-    for info in sorted(pkgutil.iter_modules(core.bench.__path__), key=lambda m: m.name):
-        if info.name.startswith("_") or info.name in names:
-            continue
-        mod = importlib.import_module(f"core.bench.{info.name}")
-        if hasattr(mod, "add_arguments"):
-            yield info.name, mod.__name__
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     sub = p.add_subparsers(dest="bench", metavar="NAME", required=True)
     for name, modname in _benchmarks():
         mod = importlib.import_module(modname)
-        if not hasattr(mod, "run"):  # measurement only (core/bench); its driver is in app/bench
-            continue
         bp = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(bp)
         bp.set_defaults(_bench_run=mod.run)

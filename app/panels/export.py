@@ -60,14 +60,15 @@ def draw(app) -> None:
     _, s.mesh_resolution = imgui.slider_int("Resolution##mesh", s.mesh_resolution, 64, 512)
     _path(app, "Mesh", "mesh_path")
     if _button(app, "Export mesh", "export_mesh"):
-        app.start_export("mesh", s.mesh_path, selection=s.export_selection, resolution=int(s.mesh_resolution))
+        app.start_export(app.engine.export_mesh, s.mesh_path, selection=s.export_selection,
+                         resolution=int(s.mesh_resolution))
     imgui.same_line()
     if _button(app, "Export points", "export_points"):
-        app.start_export("points", s.points_path, selection=s.export_selection)
+        app.start_export(app.engine.export_points, s.points_path, selection=s.export_selection)
     _path(app, "Points", "points_path")
     _path(app, "Dataset", "dataset_path", folder=True)
     if _button(app, "Export dataset", "export_dataset"):
-        app.start_export("dataset", s.dataset_path)
+        app.start_export(app.engine.export_dataset, s.dataset_path)
     imgui.separator()
     imgui.text(f"Camera path: {len(s.path_keys)} key views")
     if _button(app, "Add key view", "path_add"):

@@ -9,8 +9,6 @@ import numpy as np
 
 import torch
 
-from core.errors import WorkspaceError
-
 
 @dataclass
 class ExportSource:

@@ -74,7 +74,7 @@ def checkpoint_shapes(path: Path) -> dict[str, tuple[int, ...]]:
                 return {k: tuple(f.get_slice(k).get_shape()) for k in f.keys()}
         import torch
 
-        sd = torch.load(str(path), map_location="cpu", mmap=True, weights_only=True)
+        sd = torch.load(path, map_location="cpu", mmap=True, weights_only=True)
         while isinstance(sd, dict) and "state_dict" in sd:
             sd = sd["state_dict"]
         return {k: tuple(v.shape) for k, v in sd.items() if hasattr(v, "shape")}
