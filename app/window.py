@@ -33,6 +33,16 @@ def mouse_event(x: float, y: float, button: int | None = None, down: bool | None
     return fn
 
 
+class _GlfwLoader:
+    """moderngl's loader interface over glfw.get_proc_address (the window's current context)."""
+
+    def load_opengl_function(self, name: str) -> int:
+        return glfw.get_proc_address(name) or 0
+
+    def release(self) -> None:
+        pass
+
+
 class Window:
     """A glfw window with GL 3.3 core, moderngl and imgui (+ implot) set up."""
 
@@ -66,7 +76,10 @@ class Window:
             raise UserError("cannot create an OpenGL 3.3 window", hint="update the graphics driver (or Mesa)")
         glfw.make_context_current(self.handle)
         glfw.swap_interval(0 if os.environ.get("REPAINT_NERF_NO_VSYNC") else 1)
-        self.ctx = moderngl.create_context()
+        # moderngl takes GL functions from glfw, whichever API (GLX or EGL) made the context: its own lookup
+        # is GLX's, which misses an EGL context once an earlier window's context is moderngl's default.
+        moderngl.init_context(_GlfwLoader())
+        self.ctx = moderngl.get_context()
         imgui.create_context()
         implot.create_context()
         io = imgui.get_io()

@@ -10,6 +10,7 @@ import torch
 
 from core.device import get_device
 from core.errors import ModelNotFoundError
+from core.models.frozen import FrozenNet
 from core.models.paths import locate_model, model_type
 from core.models.vision import HALF, IMAGENET_MEAN, IMAGENET_STD, preprocessor_stats, quiet_transformers
 
@@ -17,19 +18,13 @@ METRIC_TYPES = ("zoedepth",)  # model types that predict metric depth, not relat
 
 
 @dataclass
-class DepthModel:
-    """A frozen depth network: input short side and size multiple, normalisation, and whether it predicts
-    relative inverse depth (DPT, Depth Anything relative) or depth (metric models)."""
+class DepthModel(FrozenNet):
+    """A frozen depth network: input short side and size multiple, and whether it predicts relative inverse
+    depth (DPT, Depth Anything relative) or depth (metric models)."""
 
-    model: torch.nn.Module
-    model_type: str
     short_side: int
     multiple: int
-    mean: tuple[float, float, float]
-    std: tuple[float, float, float]
     inverse: bool
-    device: torch.device
-    path: Path
 
 
 def check_depth_model(path: Path) -> str:

@@ -17,6 +17,7 @@ import torch
 
 from core.device import get_device
 from core.errors import ModelNotFoundError
+from core.models.frozen import FrozenNet
 from core.models.paths import locate_model, model_type
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -34,20 +35,14 @@ BACKBONES = {
 
 
 @dataclass
-class VisionBackbone:
+class VisionBackbone(FrozenNet):
     """A frozen vision transformer: `family` says how its patch tokens are read (dinov2, clip, clip_vision,
     siglip); `clip` is the core.models.clip.Clip of a full CLIP folder (text encoder included), else None."""
 
-    model: torch.nn.Module
     family: str
-    model_type: str
     patch_size: int
     image_size: int
-    mean: tuple[float, float, float]
-    std: tuple[float, float, float]
     prefix_tokens: int
-    device: torch.device
-    path: Path
     clip: object | None = None
 
 
