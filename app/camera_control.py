@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

@@ -15,11 +15,11 @@ VERSION = "0.1.0"
 
 
 def _command_modules():
-    import app.commands as pkg
+    import repaint_nerf.app.commands as pkg
 
     for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
         if not info.name.startswith("_"):
-            yield importlib.import_module(f"app.commands.{info.name}")
+            yield importlib.import_module(f"repaint_nerf.app.commands.{info.name}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     argv = sys.argv[1:] if argv is None else argv
     parser = build_parser()

@@ -16,16 +16,16 @@ from typing import Any, Callable
 import numpy as np
 from imgui_bundle import imgui
 
-from app.camera_control import CameraControl
-from app.panels import repaint as repaint_panel
-from app.panels import scene as scene_panel
-from app.panels import selection as selection_panel
-from app.panels import export as export_panel
-from app.panels import view as view_panel
-from app.state import EditorState, ExportJob, TrainingHistory
-from app.viewport import Viewport
-from app.window import Window
-from app.worker import Crashed, Frame, Reply, Status, Worker
+from repaint_nerf.app.camera_control import CameraControl
+from repaint_nerf.app.panels import repaint as repaint_panel
+from repaint_nerf.app.panels import scene as scene_panel
+from repaint_nerf.app.panels import selection as selection_panel
+from repaint_nerf.app.panels import export as export_panel
+from repaint_nerf.app.panels import view as view_panel
+from repaint_nerf.app.state import EditorState, ExportJob, TrainingHistory
+from repaint_nerf.app.viewport import Viewport
+from repaint_nerf.app.window import Window
+from repaint_nerf.app.worker import Crashed, Frame, Reply, Status, Worker
 
 PANEL_WIDTH = 400
 MODEL_CHANGING = {"undo", "redo", "cancel", "load"}
@@ -138,8 +138,8 @@ class EditorApp:
         return cams
 
     def _path_cameras(self) -> list:
-        from core.export.camera_path import CameraPath, interpolate
-        from core.scene.scene import Normalization
+        from repaint_nerf.core.export.camera_path import CameraPath, interpolate
+        from repaint_nerf.core.scene.scene import Normalization
 
         c2w, fov = interpolate([k[0] for k in self.state.path_keys], [k[1] for k in self.state.path_keys],
                                int(self.state.path_frames))
@@ -428,7 +428,7 @@ class EditorApp:
 
 def run_editor(path: str | None = None, workspace: str | None = None) -> int:
     """Open the editor window on `path` (None: the demo scene) and run until it is closed."""
-    from core.engine import Engine
+    from repaint_nerf.core.engine import Engine
 
     window = Window(title="RePaint-NeRF" + (f" - {Path(path).name}" if path else ""))
     # SIGTERM closes the window as the close button does: the loop ends, the worker stops, no stack trace

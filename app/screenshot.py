@@ -25,12 +25,12 @@ def main(argv: list[str] | None = None) -> int:
 
     import cv2
 
-    from app.bench.viewport import _select_ms
-    from core.engine import Engine
+    from repaint_nerf.app.bench.viewport import _select_ms
+    from repaint_nerf.core.engine import Engine
 
     xvfb = None
     if not os.environ.get("DISPLAY"):
-        from app.xvfb import start_xvfb
+        from repaint_nerf.app.xvfb import start_xvfb
 
         xvfb, os.environ["DISPLAY"] = start_xvfb(97, 140)
     ws = Path(tempfile.mkdtemp(prefix="repaint-nerf-shot-")) / "ws"
@@ -43,8 +43,8 @@ def main(argv: list[str] | None = None) -> int:
         pre.save()
         print(f"trained {pre.trainer.step_count} steps")
         del pre
-        from app.editor import EditorApp
-        from app.window import Window
+        from repaint_nerf.app.editor import EditorApp
+        from repaint_nerf.app.window import Window
 
         window = Window(width=args.width, height=args.height)
         app = EditorApp(window, Engine(), None, str(ws))

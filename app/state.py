@@ -3,8 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from core.repaint.config import RepaintConfig
-from core.train.history import TrainingHistory
+from repaint_nerf.core.repaint.config import RepaintConfig
+from repaint_nerf.core.train.history import TrainingHistory
 
 
 class ExportJob:

@@ -15,7 +15,7 @@ import glfw  # noqa: E402
 import moderngl  # noqa: E402
 import numpy as np  # noqa: E402
 
-from core.errors import UserError  # noqa: E402
+from repaint_nerf.core.errors import UserError  # noqa: E402
 
 
 def mouse_event(x: float, y: float, button: int | None = None, down: bool | None = None, shift: bool = False,
@@ -59,7 +59,7 @@ class Window:
         # swap costs 13 ms per 1280x800 frame, a GLX window's 0.4 ms. But once a process holds an EGL context
         # (core's scene rasterizer), Mesa refuses GLX ones (BadAccess in glXMakeCurrent): then EGL.
         # $REPAINT_NERF_GL_API = egl | native overrides.
-        from core.synth.raster import egl_context_made
+        from repaint_nerf.core.synth.raster import egl_context_made
 
         api = os.environ.get("REPAINT_NERF_GL_API", "auto")
         apis = [glfw.NATIVE_CONTEXT_API, glfw.EGL_CONTEXT_API]

@@ -14,9 +14,9 @@ import traceback
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from app.feature_view import FeatureProjector
-from app.resolution import DynamicResolution
-from core.errors import UserError
+from repaint_nerf.app.feature_view import FeatureProjector
+from repaint_nerf.app.resolution import DynamicResolution
+from repaint_nerf.core.errors import UserError
 
 
 PREVIEW_TRAIN_RATIO = 3.0  # seconds of training per second of preview rendering, at least

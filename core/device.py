@@ -18,7 +18,7 @@ def _resolve(name: str | None) -> torch.device:
     name = name or os.environ.get(ENV_DEVICE) or ("cuda" if torch.cuda.is_available() else "cpu")
     dev = torch.device(name)
     if dev.type == "cuda" and not torch.cuda.is_available():
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         raise UserError(f"device '{name}' was asked for but CUDA is not available",
                         hint=f"unset {ENV_DEVICE} or set it to 'cpu'")

@@ -17,17 +17,17 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from core.device import get_device
-from core.errors import UserError, WorkspaceError
-from core.render.renderer import RenderOptions, render_camera
-from core.repaint import registry
-from core.repaint.config import RepaintConfig
-from core.repaint.trainer import RepaintTrainer
-from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, load_masks, masks_for_views
-from core.select.selection import Selection
-from core.session import Teachers, start_reconstruction
-from core.synth.demo import demo_scene_path
-from core.train.stage1 import TrainConfig
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+from repaint_nerf.core.repaint import registry
+from repaint_nerf.core.repaint.config import RepaintConfig
+from repaint_nerf.core.repaint.trainer import RepaintTrainer
+from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, load_masks, masks_for_views
+from repaint_nerf.core.select.selection import Selection
+from repaint_nerf.core.session import Teachers, start_reconstruction
+from repaint_nerf.core.synth.demo import demo_scene_path
+from repaint_nerf.core.train.stage1 import TrainConfig
 
 # Optional packages (the `diffusion` extra) -> the features that need them; everything else is always built.
 OPTIONAL = {"sd": ("diffusers", "transformers")}
@@ -246,7 +246,7 @@ class Engine:
         self.masks = None
         similarity = _np(self.selection.similarity(feat))
         if mode != "sub":  # saved with the selection; the editor computes the same value for its slider
-            from core.select.autothreshold import patch_auto_threshold
+            from repaint_nerf.core.select.autothreshold import patch_auto_threshold
 
             self.selection.auto_threshold = patch_auto_threshold(similarity, patch)
         return similarity
@@ -270,7 +270,7 @@ class Engine:
 
     def _text_teacher(self, clip_path: str | None) -> tuple:
         """(teacher with encode_text, codec) of the workspace, loaded once per workspace and CLIP path."""
-        from core.teachers.text import workspace_text_query
+        from repaint_nerf.core.teachers.text import workspace_text_query
 
         key = (str(self.workspace.root), clip_path or None)
         if self._text_query is None or self._text_query[:2] != key:
@@ -286,7 +286,7 @@ class Engine:
         self._need_scene()
         if self.selection is None:
             raise UserError("nothing is selected", hint="drag a rectangle over an object in the viewport first")
-        from core.teachers.sam_refine import workspace_refiner  # the workspace's SAM choice (select --sam-path)
+        from repaint_nerf.core.teachers.sam_refine import workspace_refiner  # the workspace's SAM choice (select --sam-path)
 
         self.selection.threshold = check_threshold(threshold)
         was_training = self.field.training
@@ -406,7 +406,7 @@ class Engine:
 
     def _export_source(self):
         """The live field for core.export, with the selection's masks (live, else the saved ones)."""
-        from core.export.source import from_engine
+        from repaint_nerf.core.export.source import from_engine
 
         self._need_scene()
         return from_engine(self)
@@ -424,7 +424,7 @@ class Engine:
                     cancel: Callable[[], bool] | None = None,
                     progress: Callable[[float, str], None] | None = None) -> dict:
         """Write a coloured marching-cubes mesh (.ply/.obj/.glb, world units) of the field or the selection."""
-        from core.export.mesh import MeshOptions, export_mesh
+        from repaint_nerf.core.export.mesh import MeshOptions, export_mesh
 
         src = self._export_source()
         return self._exporting(export_mesh, src, path, MeshOptions(resolution=resolution, selection=selection),
@@ -433,7 +433,7 @@ class Engine:
     def export_points(self, path: str | Path, selection: bool = False, cancel: Callable[[], bool] | None = None,
                       progress: Callable[[float, str], None] | None = None) -> dict:
         """Write the coloured surface points of the training views (.ply, world units)."""
-        from core.export.points import export_points
+        from repaint_nerf.core.export.points import export_points
 
         src = self._export_source()
         return self._exporting(export_points, src, path, selection, masks=self.masks, cancel=cancel,
@@ -442,7 +442,7 @@ class Engine:
     def export_dataset(self, folder: str | Path, cancel: Callable[[], bool] | None = None,
                        progress: Callable[[float, str], None] | None = None) -> dict:
         """Write the current version's renders at the training cameras + transforms.json (nerfstudio layout)."""
-        from core.export.dataset import export_dataset
+        from repaint_nerf.core.export.dataset import export_dataset
 
         src = self._export_source()
         return self._exporting(export_dataset, src, folder, masks=True if self.masks is None else self.masks,
@@ -452,7 +452,7 @@ class Engine:
                            height: int, fps: float = 30.0) -> str:
         """Save key views (field-space camera-to-world, vertical fov in degrees) interpolated into `frames` as a
         nerfstudio camera_path.json in world units."""
-        from core.export.camera_path import CameraPath, interpolate, save_camera_path
+        from repaint_nerf.core.export.camera_path import CameraPath, interpolate, save_camera_path
 
         self._need_scene()
         c2w, fov = interpolate(key_c2w, key_fov, frames)
@@ -472,8 +472,8 @@ class Engine:
                          progress: Callable[[float, str], None] | None = None) -> str:
         """Write the given cameras' renders as an H.264 .mp4 or a .gif (the editor passes an orbit around the
         target, or its recorded camera path); frames stream into the encoder, the file appears only when done."""
-        from core.export.common import checkpoint
-        from core.export.video import write_video
+        from repaint_nerf.core.export.common import checkpoint
+        from repaint_nerf.core.export.video import write_video
 
         if not cameras_list:
             raise UserError("no frames to write", path)

@@ -12,15 +12,15 @@ from pathlib import Path
 
 import torch
 
-from core.device import get_device
-from core.errors import UserError, WorkspaceError
-from core.scene.loaders.common import DEFAULT_MAX_SIZE
-from core.scene.loaders.detect import load_scene
-from core.scene.scene import Scene
-from core.train.checkpoint import Checkpoint, read_header
-from core.train.header import CheckpointHeader, SceneFacts
-from core.train.stage1 import CHECKPOINT_NAME, Stage1Trainer, TrainConfig, restore_field
-from core.workspace.workspace import MARKER, Workspace
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE
+from repaint_nerf.core.scene.loaders.detect import load_scene
+from repaint_nerf.core.scene.scene import Scene
+from repaint_nerf.core.train.checkpoint import Checkpoint, read_header
+from repaint_nerf.core.train.header import CheckpointHeader, SceneFacts
+from repaint_nerf.core.train.stage1 import CHECKPOINT_NAME, Stage1Trainer, TrainConfig, restore_field
+from repaint_nerf.core.workspace.workspace import MARKER, Workspace
 
 WORKSPACE_SUFFIX = ".repaint-nerf"
 
@@ -185,7 +185,7 @@ def start_reconstruction(data: str | Path | None, workspace: str | Path | None =
     `at_current_version` the field is the workspace's current version (an edit, or a version without a
     checkpoint), as the editor shows it. Teachers follow `teachers`, else the workspace's saved choices.
     """
-    from core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
+    from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
 
     device = device if isinstance(device, torch.device) else get_device(device)
     ws, scene_path = _workspace_for(Path(data) if data is not None else None, workspace, load_as)

@@ -23,7 +23,7 @@ def xvfb_display():
     if os.environ.get("DISPLAY"):
         yield os.environ["DISPLAY"]
         return
-    from app.xvfb import start_xvfb
+    from repaint_nerf.app.xvfb import start_xvfb
 
     try:
         proc, display = start_xvfb(99, 140)
@@ -45,7 +45,7 @@ def scene_factory(tmp_path_factory):
     def make(preset: str = "demo", size: int = 32, views: int = 12, seed: int = 0, test_views: int = 4) -> Path:
         key = (preset, size, views, seed, test_views)
         if key not in cache:
-            from core.synth.generate import make_scene
+            from repaint_nerf.core.synth.generate import make_scene
 
             out = tmp_path_factory.mktemp(f"scene_{preset}_{size}")
             cache[key] = make_scene(preset, out, size=size, views=views, seed=seed, test_views=test_views)

@@ -14,10 +14,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from core.render.occupancy import OccupancyGrid
-from core.render.renderer import RenderOptions, render_camera
-from core.scene.cameras import Cameras, look_at
-from core.scene.scene import Normalization, Scene, SceneSplit
+from repaint_nerf.core.render.occupancy import OccupancyGrid
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.scene.scene import Normalization, Scene, SceneSplit
 
 BALL_RGB = (0.85, 0.12, 0.10)
 BG = (1.0, 1.0, 1.0)

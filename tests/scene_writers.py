@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.scene.cameras import look_at
+from repaint_nerf.core.scene.cameras import look_at
 
 
 def ring_poses(n: int, radius: float = 4.0, height: float = 1.0, seed: int = 0) -> np.ndarray:
@@ -68,7 +68,7 @@ def write_blender(root: Path, counts=None, w: int = 24, h: int = 16, fl: float =
 def write_llff(root: Path, c2w: np.ndarray, h: int, w: int, focal: float, bounds: np.ndarray,
                folder: str = "images") -> list[np.ndarray]:
     """An LLFF scene from OpenGL poses: poses_bounds.npy in LLFF's [down, right, back] layout + images."""
-    from core.scene.loaders.llff import opengl_to_llff
+    from repaint_nerf.core.scene.loaders.llff import opengl_to_llff
 
     n = len(c2w)
     mats = opengl_to_llff(c2w)
@@ -88,7 +88,7 @@ def write_colmap(root: Path, c2w_gl: np.ndarray, model: str, params, w: int, h: 
     world-to-camera OpenCV form, 3D points with colours, images in images/."""
     import pycolmap
 
-    from core.scene.cameras import opencv_to_opengl
+    from repaint_nerf.core.scene.cameras import opencv_to_opengl
 
     rec = pycolmap.Reconstruction()
     cam = pycolmap.Camera.create_from_model_name(1, model, 1.0, w, h)

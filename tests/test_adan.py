@@ -6,7 +6,7 @@ import math
 import pytest
 import torch
 
-from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, Adan, grads_finite, param_groups
+from repaint_nerf.core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, Adan, grads_finite, param_groups
 
 
 def reference_adan(params0, grad_fn, lrs, steps, betas=(0.98, 0.92, 0.99), eps=1e-8, wd=0.0,

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.scene.cameras import Cameras, look_at
-from core.select.autothreshold import auto_threshold, choose_threshold, patch_auto_threshold, patch_pixels
-from core.select.geometry import GeometryParts, depth_edges, fill_holes, geometric_masks, grow
+from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.select.autothreshold import auto_threshold, choose_threshold, patch_auto_threshold, patch_pixels
+from repaint_nerf.core.select.geometry import GeometryParts, depth_edges, fill_holes, geometric_masks, grow
 
 
 def _iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -146,12 +146,12 @@ def test_mask_stops_at_a_depth_edge():
 def teacher_views(tmp_path_factory):
     """Per preset: default-teacher similarity to the auto patch, ground-truth depth and object mask in the
     patch's view (the field learns these features; its depth stands in for the ground truth)."""
-    from core.bench.teacher import place_patch
-    from core.scene.loaders.detect import load_scene
-    from core.select.query import Patch
-    from core.select.selection import Selection
-    from core.synth.generate import make_scene
-    from core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
 
     import cv2
 
@@ -189,9 +189,9 @@ def test_auto_threshold_and_depth_edges_on_a_loaf_on_a_board_of_its_colour(teach
 
 
 def test_selection_saves_its_automatic_threshold(tmp_path):
-    from core.select.query import Patch
-    from core.select.selection import Selection
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     ws = Workspace.create(tmp_path / "ws")
     feats = torch.zeros(16, 16, 4)

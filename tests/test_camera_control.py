@@ -4,8 +4,8 @@ import math
 import numpy as np
 import torch
 
-from app.camera_control import CameraControl
-from core.scene.cameras import Cameras, look_at
+from repaint_nerf.app.camera_control import CameraControl
+from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 
 def _is_rotation(m):

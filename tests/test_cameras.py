@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from core.scene.cameras import Cameras, look_at, opencv_to_opengl
+from repaint_nerf.core.scene.cameras import Cameras, look_at, opencv_to_opengl
 
 
 def _cams(n=4, w=40, h=30, seed=0) -> Cameras:

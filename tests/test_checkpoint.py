@@ -7,8 +7,8 @@ import json
 import pytest
 import torch
 
-from core.errors import WorkspaceError
-from core.train.checkpoint import (CHECKPOINT_FORMAT, HEADER_KEY, Checkpoint, load_optimizer_state,
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.checkpoint import (CHECKPOINT_FORMAT, HEADER_KEY, Checkpoint, load_optimizer_state,
                                    optimizer_state)
 
 

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import WorkspaceError
-from core.train.checkpoint import CHECKPOINT_FORMAT, Checkpoint
-from core.workspace import atomic
-from core.workspace.workspace import Workspace
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.checkpoint import CHECKPOINT_FORMAT, Checkpoint
+from repaint_nerf.core.workspace import atomic
+from repaint_nerf.core.workspace.workspace import Workspace
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,8 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # once its save returned; with argv[2] == "ws" it saves workspace versions instead.
 _SAVER = r"""
 import sys, torch
-from core.train.checkpoint import Checkpoint
-from core.workspace.workspace import Workspace
+from repaint_nerf.core.train.checkpoint import Checkpoint
+from repaint_nerf.core.workspace.workspace import Workspace
 path, mode = sys.argv[1], sys.argv[2]
 ws = Workspace.open_or_create(path) if mode == "ws" else None
 i = 0
@@ -175,13 +175,13 @@ def test_edits_never_overwrite_the_original_reconstruction(tmp_path):
 def test_finished_edit_autosaves_a_version(tmp_path):
     """A repaint edit that finishes saves itself as a new 'edit' version (no explicit save): the file restores a
     field that renders like the edited one in memory, and the reconstruction version is untouched."""
-    from core.field.field import FieldConfig, NGPField
-    from core.render.occupancy import OccupancyGrid
-    from core.render.renderer import RenderOptions, render_rays
-    from core.repaint.trainer import RepaintTrainer
-    from core.scene.loaders.detect import load_scene
-    from core.synth.generate import make_scene
-    from core.train.stage1 import restore_field
+    from repaint_nerf.core.field.field import FieldConfig, NGPField
+    from repaint_nerf.core.render.occupancy import OccupancyGrid
+    from repaint_nerf.core.render.renderer import RenderOptions, render_rays
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.train.stage1 import restore_field
 
     scene = load_scene(make_scene("demo", tmp_path / "demo", size=16, views=4, seed=0, test_views=1), 1.0)
     cfg = FieldConfig(levels=4, log2_table=12, base_res=8, finest_res=64, hidden=16, geo_feat_dim=7, sh_degree=2,

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import ModelNotFoundError
-from core.scene.cameras import Cameras, look_at
-from core.teachers.align import align_inverse_depth, fit_scale_shift
-from core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
-from core.teachers.depth_sparse import depth_from_points, project_points, triangulate_known_poses
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.teachers.align import align_inverse_depth, fit_scale_shift
+from repaint_nerf.core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
+from repaint_nerf.core.teachers.depth_sparse import depth_from_points, project_points, triangulate_known_poses
 
 
 def test_alignment_recovers_scale_and_shift_with_outliers():
@@ -91,7 +91,7 @@ def test_depth_priors_gather_sample_and_store(tmp_path):
 
 
 def test_triangulation_with_known_poses_matches_ground_truth(scene_factory):
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     root = scene_factory("demo", size=128, views=12)
     scene = load_scene(root, splits=("train",))
@@ -118,7 +118,7 @@ def tiny_depth_onnx(tmp_path_factory):
 
 
 def test_onnx_depth_aligned_to_sparse_points(tiny_depth_onnx):
-    from core.teachers.depth_onnx import OnnxDepthTeacher, aligned_monocular_depth
+    from repaint_nerf.core.teachers.depth_onnx import OnnxDepthTeacher, aligned_monocular_depth
 
     teacher = OnnxDepthTeacher(tiny_depth_onnx, input_size=None, mean=(0, 0, 0), std=(1, 1, 1), multiple=1)
     rng = np.random.default_rng(0)
@@ -135,7 +135,7 @@ def test_onnx_depth_aligned_to_sparse_points(tiny_depth_onnx):
 
 
 def test_onnx_depth_missing_model(tmp_path, monkeypatch):
-    from core.teachers.depth_onnx import ENV_DEPTH_MODEL, OnnxDepthTeacher
+    from repaint_nerf.core.teachers.depth_onnx import ENV_DEPTH_MODEL, OnnxDepthTeacher
 
     monkeypatch.delenv(ENV_DEPTH_MODEL, raising=False)
     with pytest.raises(ModelNotFoundError, match=ENV_DEPTH_MODEL):

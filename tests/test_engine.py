@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from core.engine import Engine, FeatureUnavailable
-from core.errors import UserError
+from repaint_nerf.core.engine import Engine, FeatureUnavailable
+from repaint_nerf.core.errors import UserError
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_training_yields_between_steps_when_asked(engine):
 
 
 def test_worker_yields_training_to_views_commands_and_gestures(engine):
-    from app.worker import Worker
+    from repaint_nerf.app.worker import Worker
 
     worker = Worker(engine)
     stop = worker._interrupted()

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.repaint import estimate as est
-from core.repaint.estimate import Progress, estimate_before_start, estimate_repaint, format_duration, sd_step_seconds
+from repaint_nerf.core.repaint import estimate as est
+from repaint_nerf.core.repaint.estimate import Progress, estimate_before_start, estimate_repaint, format_duration, sd_step_seconds
 from repaint_scene import make_field, make_grid, make_scene
 
 CPU = torch.device("cpu")
@@ -66,7 +66,7 @@ def test_format_duration():
 
 
 def test_trainer_reports_steps_and_time_left_and_times_without_changing_the_field():
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     scene, masks = make_scene()
     field = make_field()
@@ -84,9 +84,9 @@ def test_trainer_reports_steps_and_time_left_and_times_without_changing_the_fiel
 
 
 def test_cli_prints_the_estimate_and_time_left(tmp_path, capsys, monkeypatch):
-    import app.commands.repaint as cmd
-    from app.cli import main
-    from core.workspace.workspace import Workspace
+    import repaint_nerf.app.commands.repaint as cmd
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     scene, masks = make_scene()
     field = make_field()
@@ -103,11 +103,11 @@ def test_cli_prints_the_estimate_and_time_left(tmp_path, capsys, monkeypatch):
 def test_repaint_panel_estimate_uses_the_chosen_guidance_steps_and_device():
     from types import SimpleNamespace
 
-    from app.panels.repaint import _estimate
+    from repaint_nerf.app.panels.repaint import _estimate
     from repaint_scene import make_cameras
 
     cams = make_cameras(size=16)
-    from core.repaint.config import RepaintConfig
+    from repaint_nerf.core.repaint.config import RepaintConfig
 
     state = SimpleNamespace(backend="sd", repaint_config=RepaintConfig(steps=200),
                             scene_info={"cameras": cams, "device": "cpu"})

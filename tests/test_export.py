@@ -10,15 +10,15 @@ import pytest
 import torch
 import trimesh
 
-from core.errors import UserError
-from core.export.common import ExportCancelled
-from core.export.dataset import export_dataset
-from core.export.mesh import MeshOptions, export_mesh
-from core.export.points import export_points
-from core.export.source import ExportSource
-from core.render.analytic import SphereField
-from core.render.occupancy import OccupancyGrid
-from core.scene.scene import Normalization, Scene, SceneSplit
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import ExportCancelled
+from repaint_nerf.core.export.dataset import export_dataset
+from repaint_nerf.core.export.mesh import MeshOptions, export_mesh
+from repaint_nerf.core.export.points import export_points
+from repaint_nerf.core.export.source import ExportSource
+from repaint_nerf.core.render.analytic import SphereField
+from repaint_nerf.core.render.occupancy import OccupancyGrid
+from repaint_nerf.core.scene.scene import Normalization, Scene, SceneSplit
 from repaint_scene import BALL_RGB, make_field, make_grid, make_scene
 
 NORM = Normalization(np.array([1.0, -2.0, 0.5]), 0.5)  # world = field / 0.5 + centre
@@ -149,7 +149,7 @@ def test_cancel_midway_leaves_no_file(ball_scene, tmp_path):
         calls.append(1)
         return len(calls) > 40
 
-    import core.export.mesh as mesh_mod
+    import repaint_nerf.core.export.mesh as mesh_mod
 
     old = mesh_mod.COLOR_CHUNK
     mesh_mod.COLOR_CHUNK = 64
@@ -162,8 +162,8 @@ def test_cancel_midway_leaves_no_file(ball_scene, tmp_path):
 
 
 def test_dataset_round_trip_through_our_loader(ball_scene, tmp_path):
-    from core.scene.loaders.detect import load_scene
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     src, masks = ball_scene
     info = export_dataset(src, tmp_path / "edited", masks=masks)

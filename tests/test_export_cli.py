@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from app.cli import main
+from repaint_nerf.app.cli import main
 
 
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
-    from core.synth.generate import make_scene
+    from repaint_nerf.core.synth.generate import make_scene
 
     root = tmp_path_factory.mktemp("export_cli")
     scene = make_scene("demo", root / "demo", size=24, views=6, seed=0, test_views=2)
@@ -25,8 +25,8 @@ def workspace(tmp_path_factory):
 
 
 def _field_box_world(ws):
-    from core.export.dataset import field_aabb
-    from core.export.source import open_workspace
+    from repaint_nerf.core.export.dataset import field_aabb
+    from repaint_nerf.core.export.source import open_workspace
 
     return np.asarray(field_aabb(open_workspace(ws, "cpu")))
 
@@ -66,8 +66,8 @@ def test_render_turntable_h264_and_camera_path(workspace, tmp_path, capsys):
     assert meta["codec"] == "h264" and meta["pix_fmt"].startswith("yuv420p") and meta["size"] == (24, 24)
     assert imageio_ffmpeg.count_frames_and_secs(str(tt / "turntable.mp4"))[0] == 5
     assert (tt / "turntable.gif").stat().st_size > 0
-    from core.export.camera_path import CameraPath, interpolate, save_camera_path
-    from core.scene.cameras import look_at
+    from repaint_nerf.core.export.camera_path import CameraPath, interpolate, save_camera_path
+    from repaint_nerf.core.scene.cameras import look_at
 
     keys = np.stack([look_at((4 * np.cos(a), 4 * np.sin(a), 2), (0, 0, 0.3)) for a in (0.0, 1.0, 2.0)])
     c2w, fov = interpolate(keys, [40.0, 40.0, 50.0], frames=4)

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import UserError
-from core.export.camera_path import CameraPath, interpolate, load_camera_path, save_camera_path
-from core.export.video import write_video
-from core.scene.cameras import look_at
-from core.scene.scene import Normalization
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.camera_path import CameraPath, interpolate, load_camera_path, save_camera_path
+from repaint_nerf.core.export.video import write_video
+from repaint_nerf.core.scene.cameras import look_at
+from repaint_nerf.core.scene.scene import Normalization
 
 
 def _frames(n=7, h=21, w=33):

@@ -6,10 +6,10 @@ import json
 import pytest
 import torch
 
-from core.errors import UserError
-from core.field.activations import softplus_density, trunc_exp
-from core.field.direction import sh_encode
-from core.field.field import FieldConfig, NGPField, default_field_config
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.field.activations import softplus_density, trunc_exp
+from repaint_nerf.core.field.direction import sh_encode
+from repaint_nerf.core.field.field import FieldConfig, NGPField, default_field_config
 
 SMALL = dict(levels=4, log2_table=10, base_res=4, finest_res=64, feature_levels=2, feature_log2_table=8,
              feature_finest_res=16, encoding_impl="indexed")

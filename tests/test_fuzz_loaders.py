@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import SceneError, UserError, WorkspaceError
-from core.scene.loaders.detect import load_scene
+from repaint_nerf.core.errors import SceneError, UserError, WorkspaceError
+from repaint_nerf.core.scene.loaders.detect import load_scene
 from scene_writers import pattern, ring_poses, write_blender, write_colmap, write_llff
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -166,7 +166,7 @@ def test_fuzz_colmap_text_model(tmp_path):
 def test_fuzz_colmap_binary_model(tmp_path, monkeypatch):
     """Truncated, zeroed and byte-flipped .bin files, and counts / track lengths turned huge (pycolmap loops forever
     on those): each loads or raises a SceneError within the probe's time limit."""
-    import core.scene.loaders.colmap as colmap
+    import repaint_nerf.core.scene.loaders.colmap as colmap
 
     monkeypatch.setattr(colmap, "PROBE_TIMEOUT_S", 4.0)
     root = tmp_path / "colmap"
@@ -230,14 +230,14 @@ def test_fuzz_images(tmp_path):
 
 # -- workspace files -------------------------------------------------------------------------------
 def _workspace(tmp_path: Path):
-    from core.train.checkpoint import Checkpoint
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     ws = Workspace.create(tmp_path / "ws", {"scene": "/data/x"})
     for i in range(3):
         ws.save_version(f"v{i}", Checkpoint({"w": torch.full((4,), float(i))}, {"step": i}),
                         kind="stage1" if i == 0 else "edit")
-    from core.select.masks import write_masks
+    from repaint_nerf.core.select.masks import write_masks
 
     write_masks(ws.masks_dir, [np.eye(8, dtype=bool), np.ones((8, 8), bool)])
     return ws
@@ -245,9 +245,9 @@ def _workspace(tmp_path: Path):
 
 def _use_workspace(root: Path) -> None:
     """Everything the program reads from a workspace."""
-    from core.select.masks import load_masks
-    from core.train.checkpoint import Checkpoint
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     ws = Workspace.open(root)
     ws.settings
@@ -316,7 +316,7 @@ def test_colmap_image_name_cannot_leave_the_image_folder(tmp_path):
 
 def test_workspace_files_cannot_point_outside(tmp_path):
     """A version entry or a mask index naming '../..' or an absolute path is a WorkspaceError."""
-    from core.select.masks import load_masks
+    from repaint_nerf.core.select.masks import load_masks
 
     ws = _workspace(tmp_path)
     index = ws.versions_dir / "index.json"
@@ -352,8 +352,8 @@ def test_no_unpickling_loaders():
 def test_cli_on_bad_input_leaves_a_clean_workspace(tmp_path, capsys):
     """`train` on a corrupt dataset: exit 2 with the message (no traceback); the workspace it named opens cleanly,
     holds no checkpoint, no version and no temporary files."""
-    from app.cli import main
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     root = tmp_path / "blender"
     write_blender(root, counts={"train": 3}, w=12, h=8)

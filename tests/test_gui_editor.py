@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 pytestmark = pytest.mark.gui
 
@@ -43,7 +43,7 @@ class AnalyticEngine:
     def load(self, path, workspace=None):
         poses = [look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]) for a in np.linspace(0, 6, 8)]
         cams = Cameras.create(np.stack(poses), 60.0, 60.0, 40.0, 40.0, 80, 80)
-        from core.train.history import TrainingHistory
+        from repaint_nerf.core.train.history import TrainingHistory
 
         self.step = 3  # a reopened workspace: three steps trained before, their curve saved with it
         past = TrainingHistory([1.0, 2.0, 3.0], [1.0, 0.5, 0.33], [10.0, 10.7, 11.1])
@@ -118,7 +118,7 @@ class AnalyticEngine:
         return 8
 
     def repaint(self, *args, **kwargs):
-        from core.engine import Engine
+        from repaint_nerf.core.engine import Engine
 
         call = inspect.signature(Engine.repaint).bind(self, *args, **kwargs)  # the real engine's signature
         call.apply_defaults()
@@ -148,8 +148,8 @@ class AnalyticEngine:
 
 @pytest.fixture(scope="module")
 def editor(xvfb_display):
-    from app.editor import EditorApp
-    from app.window import Window
+    from repaint_nerf.app.editor import EditorApp
+    from repaint_nerf.app.window import Window
 
     window = Window(width=1000, height=960)  # tall enough that every panel is on screen
     engine = AnalyticEngine()
@@ -191,7 +191,7 @@ def view_pixels(app, shot):
 
 
 def mouse(x, y, button=None, down=None, shift=False, ctrl=False):
-    from app.window import mouse_event
+    from repaint_nerf.app.window import mouse_event
 
     return mouse_event(x, y, button, down, shift, ctrl)
 
@@ -322,8 +322,8 @@ def test_repaint_previews_and_undo_restores(editor, artifacts_dir):
     run_until(editor, lambda: editor.engine.edit_target is not None or editor.engine.current == 1)
     shot = run_until(editor, lambda: editor.engine.current == 1 and full_frame(editor) and _green_center(editor))
     cv2.imwrite(str(artifacts_dir / "gui_04_repaint.png"), shot[..., ::-1])
-    from core.repaint.config import RepaintConfig
-    from core.repaint.registry import clip_weight
+    from repaint_nerf.core.repaint.config import RepaintConfig
+    from repaint_nerf.core.repaint.registry import clip_weight
 
     call = editor.engine.repaint_calls[-1]  # what the panel sent: the CLI's defaults, the CLIP loss on with SD
     assert (call["prompt"], call["bg_prompt"], call["guidance"], call["clip_path"]) == \
@@ -382,7 +382,7 @@ def test_an_idle_editor_sleeps_and_a_result_wakes_it(editor):
 def test_a_moved_view_is_not_redrawn_stale_while_it_renders(editor):
     """After a camera move the old picture is not drawn again at every frame while the new one renders (that
     draw competes with the render for the CPU), but at least every STALE_REDRAW_S; its arrival is drawn."""
-    from app.editor import STALE_REDRAW_S
+    from repaint_nerf.app.editor import STALE_REDRAW_S
 
     run_until(editor, lambda: full_frame(editor))
     editor.engine.render_delay = 0.5

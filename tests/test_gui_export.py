@@ -12,9 +12,9 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
-from core.engine import Engine
-from core.export.common import checkpoint
-from core.scene.scene import Normalization
+from repaint_nerf.core.engine import Engine
+from repaint_nerf.core.export.common import checkpoint
+from repaint_nerf.core.scene.scene import Normalization
 from test_gui_editor import AnalyticEngine, click, frames, run_until
 
 pytestmark = pytest.mark.gui
@@ -39,7 +39,7 @@ class ExportingEngine(AnalyticEngine):
     def export_mesh(self, path, selection=False, resolution=256, cancel=None, progress=None):
         import trimesh
 
-        from core.export.mesh import write_mesh
+        from repaint_nerf.core.export.mesh import write_mesh
 
         for i in range(5):
             checkpoint(cancel, progress, i / 5, "sampling the density")
@@ -56,8 +56,8 @@ class ExportingEngine(AnalyticEngine):
 
 @pytest.fixture(scope="module")
 def editor(xvfb_display):
-    from app.editor import EditorApp
-    from app.window import Window
+    from repaint_nerf.app.editor import EditorApp
+    from repaint_nerf.app.window import Window
 
     window = Window(width=1000, height=960)
     app = EditorApp(window, ExportingEngine(), None, worker_kwargs={"train_budget_s": 0.02, "rest_s": 0.05,

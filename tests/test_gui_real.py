@@ -20,9 +20,9 @@ PRETRAIN_STEPS = 300
 
 @pytest.fixture(scope="module")
 def editor(xvfb_display, scene_factory, tmp_path_factory):
-    from app.editor import EditorApp
-    from app.window import Window
-    from core.engine import Engine
+    from repaint_nerf.app.editor import EditorApp
+    from repaint_nerf.app.window import Window
+    from repaint_nerf.core.engine import Engine
 
     path = scene_factory("demo", size=48, views=16, test_views=2)
     ws = str(tmp_path_factory.mktemp("ws") / "ws")
@@ -139,7 +139,7 @@ def test_sigterm_closes_the_editor_quietly(xvfb_display, scene_factory, tmp_path
     path = scene_factory("demo", size=24, views=6, test_views=2)
     ws = tmp_path / "ws"
     env = {**os.environ, "DISPLAY": xvfb_display}
-    proc = subprocess.Popen([sys.executable, "-m", "app.cli", "open", str(path), "--workspace", str(ws)],
+    proc = subprocess.Popen([sys.executable, "-m", "repaint_nerf.app.cli", "open", str(path), "--workspace", str(ws)],
                             cwd=Path(__file__).resolve().parents[1], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:

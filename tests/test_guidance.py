@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from core.models.sd import load_stable_diffusion
-from core.repaint.analytic import AnalyticGuidance, sd_alphas_cumprod
-from core.repaint.clip_loss import ClipBackgroundLoss, build_clip_loss, clip_preprocess
-from core.repaint.guidance import TimestepSampler, distillation_loss
-from core.repaint.sds import SDSGuidance
-from core.train.adan import Adan
+from repaint_nerf.core.models.sd import load_stable_diffusion
+from repaint_nerf.core.repaint.analytic import AnalyticGuidance, sd_alphas_cumprod
+from repaint_nerf.core.repaint.clip_loss import ClipBackgroundLoss, build_clip_loss, clip_preprocess
+from repaint_nerf.core.repaint.guidance import TimestepSampler, distillation_loss
+from repaint_nerf.core.repaint.sds import SDSGuidance
+from repaint_nerf.core.train.adan import Adan
 from tiny_diffusion import cached
 
 
@@ -229,7 +229,7 @@ def test_clip_loss_is_lazy_and_absent_at_weight_zero(tmp_path):
     assert build_clip_loss(0.0, "leaves", path=tmp_path / "does-not-exist") is None
     lazy = build_clip_loss(0.01, "leaves", path=tmp_path / "does-not-exist")
     assert lazy is not None and not lazy.loaded
-    from core.errors import ModelNotFoundError
+    from repaint_nerf.core.errors import ModelNotFoundError
 
     with pytest.raises(ModelNotFoundError, match="--clip-path"):
         lazy.loss(torch.rand(1, 3, 8, 8), torch.zeros(1, 1, 8, 8))
@@ -261,11 +261,11 @@ def test_fp16_latents_gradient_goes_through_grad_scaler():
 def test_registry_records_match_the_backends_and_their_extras():
     """Each record's `extras` are the optional Guidance members its class overrides; every backend class
     satisfies the protocol; a duck-typed object with only `loss` gets the protocol's defaults."""
-    from core.errors import UserError
-    from core.repaint import build_guidance, registry
-    from core.repaint.guidance import EXTRAS, Guidance, as_guidance
-    from core.repaint.recolor import RecolorGuidance
-    from core.repaint.remove import RemoveGuidance
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.repaint import build_guidance, registry
+    from repaint_nerf.core.repaint.guidance import EXTRAS, Guidance, as_guidance
+    from repaint_nerf.core.repaint.recolor import RecolorGuidance
+    from repaint_nerf.core.repaint.remove import RemoveGuidance
 
     classes = {"recolor": RecolorGuidance, "remove": RemoveGuidance, "sd": SDSGuidance, "analytic": AnalyticGuidance}
     assert set(classes) | {"offline"} == set(registry.GUIDANCES)

@@ -6,12 +6,12 @@ import warnings
 import pytest
 import torch
 
-from core.errors import UserError
-from core.field import hashgrid_native
-from core.field.encoding import AutoEncoder, HashGridEncoding, encoder_fn
-from core.field.hashgrid import GridSpec, dense_index, encode_reference, spatial_hash
-from core.field.hashgrid_fast import CompiledEncoder, encode_indexed, encode_vectorized
-from core.field.hashgrid_native import encode_native
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.field import hashgrid_native
+from repaint_nerf.core.field.encoding import AutoEncoder, HashGridEncoding, encoder_fn
+from repaint_nerf.core.field.hashgrid import GridSpec, dense_index, encode_reference, spatial_hash
+from repaint_nerf.core.field.hashgrid_fast import CompiledEncoder, encode_indexed, encode_vectorized
+from repaint_nerf.core.field.hashgrid_native import encode_native
 
 # float32 sums in another order: relative 1e-5, absolute 1e-5 of the largest value (input gradients
 # scale with the finest resolution, table gradients are sums over thousands of points)

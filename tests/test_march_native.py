@@ -4,13 +4,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.render import march_native
-from core.render.analytic import SphereField
-from core.render.occupancy import OccupancyGrid, default_step
-from core.render.box import cube
-from core.render.raymarch import Samples, expand_segments, next_segments, plan_rays
-from core.render.renderer import RenderOptions, render_camera, render_rays
-from core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.render import march_native
+from repaint_nerf.core.render.analytic import SphereField
+from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
+from repaint_nerf.core.render.box import cube
+from repaint_nerf.core.render.raymarch import Samples, expand_segments, next_segments, plan_rays
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera, render_rays
+from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 
 def _rays(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

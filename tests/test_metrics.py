@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from core.train.metrics import psnr, ssim
+from repaint_nerf.core.train.metrics import psnr, ssim
 
 
 @pytest.mark.parametrize("shape,noise", [((40, 56, 3), 0.05), ((24, 24, 3), 0.3), ((64, 48, 1), 0.1)])

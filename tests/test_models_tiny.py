@@ -6,10 +6,10 @@ import shutil
 import pytest
 import torch
 
-from core.errors import ModelNotFoundError
-from core.models.clip import load_clip
-from core.models.paths import resolve_model_path
-from core.models.sd import load_stable_diffusion
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.clip import load_clip
+from repaint_nerf.core.models.paths import resolve_model_path
+from repaint_nerf.core.models.sd import load_stable_diffusion
 from tiny_diffusion import MAX_LEN, cached
 
 
@@ -100,7 +100,7 @@ def test_clip_folder_without_config_is_clear(tmp_path):
 
 
 def test_build_guidance_sd_through_settings(sd_path, monkeypatch):
-    from core.repaint import Guidance, build_guidance
+    from repaint_nerf.core.repaint import Guidance, build_guidance
 
     for var in ("REPAINT_NERF_SD_PATH", "REPAINT_NERF_MODELS"):
         monkeypatch.delenv(var, raising=False)

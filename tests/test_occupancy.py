@@ -7,12 +7,12 @@ import math
 import pytest
 import torch
 
-from core.errors import UserError
-from core.render.analytic import SphereField
-from core.render.occupancy import OccupancyGrid, default_step
-from core.render.renderer import RenderOptions, render_camera
-from core.scene.cameras import Cameras, look_at
-from core.train.metrics import psnr
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.render.analytic import SphereField
+from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.train.metrics import psnr
 
 
 def _centres(grid: OccupancyGrid, c: int = 0) -> torch.Tensor:

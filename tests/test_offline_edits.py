@@ -5,14 +5,14 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import UserError
-from core.repaint.color_space import lab_to_rgb, linear_to_srgb, luminance, rgb_to_lab, srgb_to_linear
-from core.repaint.colors import COLORS, color_in_prompt, parse_rgb, resolve_color
-from core.repaint.inpaint import inpaint
-from core.repaint.recolor import recolor
-from core.repaint.region import region_points, selection_region
-from core.repaint.registry import offline_kind
-from core.repaint.trainer import RepaintTrainer
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.repaint.color_space import lab_to_rgb, linear_to_srgb, luminance, rgb_to_lab, srgb_to_linear
+from repaint_nerf.core.repaint.colors import COLORS, color_in_prompt, parse_rgb, resolve_color
+from repaint_nerf.core.repaint.inpaint import inpaint
+from repaint_nerf.core.repaint.recolor import recolor
+from repaint_nerf.core.repaint.region import region_points, selection_region
+from repaint_nerf.core.repaint.registry import offline_kind
+from repaint_nerf.core.repaint.trainer import RepaintTrainer
 from repaint_scene import make_field, make_grid, make_scene
 
 

@@ -12,8 +12,8 @@ from scene_writers import write_blender
 
 
 def test_large_photos_are_downscaled_by_default_and_small_ones_kept(tmp_path):
-    from core.scene.loaders.common import DEFAULT_MAX_SIZE
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     big = tmp_path / "big"
     write_blender(big, {"train": 3, "test": 1}, w=1024, h=768, fl=900.0)
@@ -35,7 +35,7 @@ def test_large_photos_are_downscaled_by_default_and_small_ones_kept(tmp_path):
 def test_downscaling_keeps_intrinsics_consistent(tmp_path):
     """A world point projects to the same place, in proportion, in the full-size and the downscaled camera; and
     the downscaled image is the full one resized (same colours there)."""
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     root = tmp_path / "s"
     write_blender(root, {"train": 2, "test": 1}, w=1000, h=600, fl=700.0, rgba=False)
@@ -59,15 +59,15 @@ def test_downscaling_keeps_intrinsics_consistent(tmp_path):
 
 @pytest.fixture(scope="module")
 def trainer_160(scene_factory):
-    from core.scene.loaders.detect import load_scene
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     scene = load_scene(scene_factory("demo", size=160, views=6, test_views=12))
     return Stage1Trainer(scene, None, TrainConfig(seed=0, rays_per_batch=256, grid_resolution=32, max_samples=32))
 
 
 def test_evaluation_is_bounded_and_full_only_when_asked(trainer_160, monkeypatch):
-    from core.train import stage1
+    from repaint_nerf.core.train import stage1
 
     # smaller bounds than the defaults keep the test quick; the rule is the same
     EVAL_VIEWS, EVAL_CROP, EVAL_SAMPLE_CAP = 5, 48, 16
@@ -90,10 +90,10 @@ def test_evaluation_is_bounded_and_full_only_when_asked(trainer_160, monkeypatch
 def test_foggy_field_render_samples_are_bounded():
     """An untrained field (every grid cell occupied, nothing opaque) would march every ray to the far bound, and
     the far bound's step count grows with the image size; capped, the samples per ray do not grow."""
-    from core.render.occupancy import grid_for_field
-    from core.render.renderer import RenderOptions, render_camera
-    from core.scene.cameras import Cameras, look_at
-    from core.train.stage1 import EVAL_SAMPLE_CAP, make_field, sample_budget
+    from repaint_nerf.core.render.occupancy import grid_for_field
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.train.stage1 import EVAL_SAMPLE_CAP, make_field, sample_budget
 
     torch.manual_seed(0)
     field, _ = make_field(None, torch.device("cpu"), 64)
@@ -116,8 +116,8 @@ def test_foggy_field_render_samples_are_bounded():
 def test_seconds_budget_skips_the_full_evaluation_with_a_message(capsys):
     """Budget accounting with a fake clock: the bounded evaluation runs, the full one would not fit and is
     skipped with a message that names it."""
-    from app.commands.train import closing_evaluation
-    from core.train.budget import CommandBudget
+    from repaint_nerf.app.commands.train import closing_evaluation
+    from repaint_nerf.core.train.budget import CommandBudget
 
     now = [0.0]
 
@@ -149,7 +149,7 @@ def test_seconds_budget_skips_the_full_evaluation_with_a_message(capsys):
 
 
 def test_seconds_bounds_the_whole_train_command(scene_factory, tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     scene = scene_factory("demo", size=32, views=8, test_views=4)
     t0 = time.perf_counter()
@@ -164,8 +164,8 @@ def test_seconds_bounds_the_whole_train_command(scene_factory, tmp_path, capsys)
 
 @pytest.mark.parametrize("value", [-1, 4, 2.5, "x"])
 def test_bad_max_size_is_a_user_error(tmp_path, value):
-    from core.errors import UserError
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     write_blender(tmp_path, {"train": 1})
     with pytest.raises(UserError, match="--max-size"):

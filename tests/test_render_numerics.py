@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import UserError
-from core.render.analytic import BoxField, SphereField
-from core.render.composite import composite
-from core.render.occupancy import OccupancyGrid, default_step
-from core.render.renderer import RenderOptions, render_camera, render_rays
-from core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.render.analytic import BoxField, SphereField
+from repaint_nerf.core.render.composite import composite
+from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera, render_rays
+from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 
 def _reference(sigma, delta, ray, n_rays, rgb):

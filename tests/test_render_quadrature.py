@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.render.analytic import BoxField, GaussianField, SphereField
-from core.render.occupancy import OccupancyGrid, default_step
-from core.render.renderer import RenderOptions, render_rays
+from repaint_nerf.core.render.analytic import BoxField, GaussianField, SphereField
+from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
+from repaint_nerf.core.render.renderer import RenderOptions, render_rays
 
 STEP = default_step(1.0, 1024)
 

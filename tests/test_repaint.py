@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from app.cli import main
-from core.repaint import registry
-from core.repaint.config import RepaintConfig
-from core.repaint.guidance import distillation_loss
-from core.repaint.trainer import RepaintTrainer
-from core.train.checkpoint import Checkpoint
-from core.workspace.workspace import Workspace
+from repaint_nerf.app.cli import main
+from repaint_nerf.core.repaint import registry
+from repaint_nerf.core.repaint.config import RepaintConfig
+from repaint_nerf.core.repaint.guidance import distillation_loss
+from repaint_nerf.core.repaint.trainer import RepaintTrainer
+from repaint_nerf.core.train.checkpoint import Checkpoint
+from repaint_nerf.core.workspace.workspace import Workspace
 from repaint_scene import VoxelField, make_field, make_grid, make_scene
 from tiny_diffusion import cached
 
@@ -95,7 +95,7 @@ def test_non_finite_guidance_is_skipped_not_applied(scene, guidance):
 def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
     torch.manual_seed(0)
     scene, masks = make_scene(tmp_path / "scene", size=16, edited_rgb=(0.12, 0.3, 0.9))
-    from core.repaint.trainer import edited_images
+    from repaint_nerf.core.repaint.trainer import edited_images
 
     targets = edited_images(scene)
     field = make_field()
@@ -111,7 +111,7 @@ def test_analytic_guidance_converges_in_the_mask_and_keeps_the_rest(tmp_path):
 
 
 def test_analytic_drift_moves_only_the_unmasked_target(tmp_path):
-    from core.repaint.trainer import DRIFT_TINT
+    from repaint_nerf.core.repaint.trainer import DRIFT_TINT
 
     scene, masks = make_scene(tmp_path / "scene", size=16, edited_rgb=(0.12, 0.3, 0.9))
     field = make_field()
@@ -127,7 +127,7 @@ def test_analytic_drift_moves_only_the_unmasked_target(tmp_path):
 
 
 def test_analytic_needs_the_edited_variant(scene):
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     with pytest.raises(UserError, match="edited"):
         _trainer(scene, "analytic", steps=1)
@@ -177,9 +177,9 @@ def test_cancel_restores_and_pause_stops(scene):
 
 
 def test_ngp_field_step_and_version_restore(scene, tmp_path):
-    from core.field.field import FieldConfig, NGPField
-    from core.render.occupancy import OccupancyGrid
-    from core.train.stage1 import restore_field
+    from repaint_nerf.core.field.field import FieldConfig, NGPField
+    from repaint_nerf.core.render.occupancy import OccupancyGrid
+    from repaint_nerf.core.train.stage1 import restore_field
 
     cfg = FieldConfig(levels=4, log2_table=12, finest_res=64, hidden=16, feature_dim=4, compile=False)
     torch.manual_seed(0)
@@ -225,9 +225,9 @@ def test_cli_bad_input(tmp_path, capsys, monkeypatch):
 def test_one_set_of_defaults_for_the_cli_the_editor_and_the_trainer():
     """The `repaint` flags default from RepaintConfig, the editor holds a RepaintConfig, and the CLIP weight's
     default is one rule: the official 0.01 with Stable Diffusion, 0 for the offline and analytic edits."""
-    from app.cli import build_parser
-    from app.commands.repaint import CONFIG_FLAGS, config_from_args
-    from app.state import EditorState
+    from repaint_nerf.app.cli import build_parser
+    from repaint_nerf.app.commands.repaint import CONFIG_FLAGS, config_from_args
+    from repaint_nerf.app.state import EditorState
 
     args = build_parser().parse_args(["repaint", "ws"])
     assert config_from_args(args) == RepaintConfig() == EditorState().repaint_config
@@ -247,9 +247,9 @@ def test_one_set_of_defaults_for_the_cli_the_editor_and_the_trainer():
 def test_editor_repaint_fields_reach_the_trainer(scene_factory, tmp_path, tmp_path_factory):
     """The Repaint panel's prompt, background prompt, guidance, model folders and steps go through the request
     the editor submits and Engine.repaint to the RepaintTrainer, and the background prompt reaches the loss."""
-    from app.panels.repaint import repaint_request
-    from app.state import EditorState
-    from core.engine import Engine
+    from repaint_nerf.app.panels.repaint import repaint_request
+    from repaint_nerf.app.state import EditorState
+    from repaint_nerf.core.engine import Engine
 
     sd_path, clip_path = cached("sd", tmp_path_factory), cached("clip", tmp_path_factory)
     engine = Engine("cpu", features=False, depth=False)

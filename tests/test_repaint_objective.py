@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import UserError
-from core.repaint.objective import stage2_loss, unmask_loss
-from core.repaint.trainer import RepaintTrainer
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.repaint.objective import stage2_loss, unmask_loss
+from repaint_nerf.core.repaint.trainer import RepaintTrainer
 from repaint_scene import make_field, make_grid, make_scene
 
 

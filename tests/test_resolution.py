@@ -1,7 +1,7 @@
 """The viewport's dynamic-resolution controller follows instant-ngp's rule (sqrt ratio, clamp, 20% band)."""
 import math
 
-from app.resolution import DynamicResolution
+from repaint_nerf.app.resolution import DynamicResolution
 
 
 def test_scales_by_sqrt_of_time_ratio():

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.cli import main
-from core.errors import SceneError, UserError
-from core.scene.loaders import detect
-from core.scene.loaders.detect import load_scene
+from repaint_nerf.app.cli import main
+from repaint_nerf.core.errors import SceneError, UserError
+from repaint_nerf.core.scene.loaders import detect
+from repaint_nerf.core.scene.loaders.detect import load_scene
 from scene_writers import pattern, ring_poses, write_blender, write_colmap, write_image, write_llff
 
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.field.contraction import NDCWarp, contract, make_warp, mean_pose, uncontract
-from core.scene.kinds import choose_kind, kind_from_layout
-from core.synth.presets import build_spec
-from core.synth.raster import world_bbox
+from repaint_nerf.core.field.contraction import NDCWarp, contract, make_warp, mean_pose, uncontract
+from repaint_nerf.core.scene.kinds import choose_kind, kind_from_layout
+from repaint_nerf.core.synth.presets import build_spec
+from repaint_nerf.core.synth.raster import world_bbox
 
 
 def _layout(preset: str, n: int = 24, seed: int = 0):
@@ -39,14 +39,14 @@ def test_without_points_the_far_depth_decides(preset, far, expected):
 
 
 def test_override_and_bad_override():
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     class S:  # the attributes choose_kind reads
         kind, extra, points = "bounded", {}, None
 
     _, c2w, _ = _layout("forward")
-    from core.scene.cameras import Cameras
-    from core.scene.scene import SceneSplit
+    from repaint_nerf.core.scene.cameras import Cameras
+    from repaint_nerf.core.scene.scene import SceneSplit
 
     s = S()
     s.splits = {"train": SceneSplit(Cameras.create(c2w, 100, 100, 50, 50, 100, 100), [], [])}
@@ -129,14 +129,14 @@ def test_contract_warp_inverse():
 
 
 def test_unknown_warp_is_a_clear_error():
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     with pytest.raises(UserError, match="unknown space warp"):
         make_warp({"kind": "sphere"})
 
 
 def _tiny_field(warp=None):
-    from core.field.field import FieldConfig, NGPField
+    from repaint_nerf.core.field.field import FieldConfig, NGPField
 
     torch.manual_seed(0)
     return NGPField(FieldConfig(levels=2, log2_table=10, base_res=4, finest_res=8, hidden=16,
@@ -155,7 +155,7 @@ def test_warped_field_sees_far_points_inside_its_cube():
 
 
 def test_cone_steps_grow_with_distance_and_invert():
-    from core.render.raymarch import _cone_steps, _cone_t
+    from repaint_nerf.core.render.raymarch import _cone_steps, _cone_t
 
     t0 = torch.tensor([0.0, 0.5, 3.0])
     k = torch.arange(0, 400, dtype=torch.float32)[:, None].expand(-1, 3)
@@ -171,8 +171,8 @@ def test_cone_steps_grow_with_distance_and_invert():
 def test_warped_grid_skips_in_warped_space_and_renders_like_without_skipping():
     """A contracted field with density only in a far shell: the grid (in contracted space) learns where it
     is, rendering with it matches rendering without skipping, and rays reach the far shell."""
-    from core.render.occupancy import grid_for_field
-    from core.render.renderer import RenderOptions, render_rays
+    from repaint_nerf.core.render.occupancy import grid_for_field
+    from repaint_nerf.core.render.renderer import RenderOptions, render_rays
 
     class Shell(torch.nn.Module):  # far shell between |x|_inf 4 and 8 (two cells deep), coloured by position
         warp = make_warp({"kind": "contract", "extent": 16.0, "cone": 1 / 256})
@@ -210,11 +210,11 @@ def test_warped_grid_skips_in_warped_space_and_renders_like_without_skipping():
 def test_warped_scene_trains_saves_and_renders(tmp_path, preset, kind):
     """Forward and 360 presets train with their warp (chosen from the scene kind), raise test PSNR,
     and a saved checkpoint restores the warp and renders identically."""
-    from core.render.renderer import RenderOptions, render_camera
-    from core.scene.loaders.detect import load_scene
-    from core.synth.generate import make_scene
-    from core.train.checkpoint import Checkpoint
-    from core.train.stage1 import Stage1Trainer, TrainConfig, restore_field
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig, restore_field
 
     make_scene(preset, tmp_path / "s", size=32, views=16, test_views=3, seed=0)
     for split in ("train", "test"):  # a capture has no box around its content: that is what the warp is for
@@ -243,8 +243,8 @@ def test_warped_scene_trains_saves_and_renders(tmp_path, preset, kind):
 
 @pytest.mark.parametrize("preset,kind", [("demo", "bounded"), ("room360", "unbounded"), ("forward", "forward")])
 def test_a_dataset_without_a_kind_gets_it_from_its_camera_layout(tmp_path, preset, kind):
-    from core.scene.loaders.detect import load_scene
-    from core.synth.generate import make_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
 
     make_scene(preset, tmp_path / "s", size=16, views=12, test_views=2, seed=0)
     for split in ("train", "test"):

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.scene.cameras import Cameras, look_at
-from core.scene.loaders.detect import detect_format, load_scene
-from core.scene.loaders.images import apply_orientation, read_image
-from core.scene.normalize import normalize_scene
+from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.scene.loaders.detect import detect_format, load_scene
+from repaint_nerf.core.scene.loaders.images import apply_orientation, read_image
+from repaint_nerf.core.scene.normalize import normalize_scene
 from scene_writers import pattern, ring_poses, write_blender, write_colmap, write_image, write_llff
 
 ATOL_POSE = 1e-5
@@ -295,7 +295,7 @@ def test_object_centric_normalisation_finds_the_centre(tmp_path):
     target = np.array([0.5, -0.3, 0.2])
     poses = np.stack([look_at(target + 4 * np.array([math.cos(a), math.sin(a), 0.4]), target)
                       for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)])
-    from core.scene.scene import Scene, SceneSplit
+    from repaint_nerf.core.scene.scene import Scene, SceneSplit
 
     cams = Cameras.create(poses, 30.0, 30.0, 12.0, 12.0, 24, 24)
     scene = Scene(root=tmp_path, format="blender",
@@ -364,7 +364,7 @@ def test_synthetic_scene_loads_with_its_cameras_and_depth(scene_factory):
 
 
 def test_info_command_reports_the_scene(scene_factory, capsys, tmp_path):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     root = scene_factory("demo", size=32, views=6, seed=0, test_views=2)
     assert main(["info", str(root), "--json", "--downscale", "2"]) == 0

@@ -11,10 +11,10 @@ import socket
 import pytest
 import torch
 
-from core.errors import ModelNotFoundError
-from core.models import sd_single_file as sf
-from core.models.paths import resolve_model_path
-from core.models.sd import load_stable_diffusion
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models import sd_single_file as sf
+from repaint_nerf.core.models.paths import resolve_model_path
+from repaint_nerf.core.models.sd import load_stable_diffusion
 from tiny_diffusion import cached, config_only_copy, original_state_dict, save_single_file
 
 
@@ -216,7 +216,7 @@ def test_prediction_type_override_and_unsupported(tiny):
 @pytest.fixture(scope="module")
 def selected_ws(scene_factory, tmp_path_factory):
     """A workspace trained for a few steps on a tiny demo scene, with a selection."""
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     ws = tmp_path_factory.mktemp("ws") / "ws"
     assert main(["train", str(scene_factory("demo", size=24, views=6)), "--workspace", str(ws), "--steps", "8",
@@ -227,8 +227,8 @@ def selected_ws(scene_factory, tmp_path_factory):
 
 
 def test_cli_repaint_sd_from_folder_single_file_and_cached_id(selected_ws, tiny, tmp_path, capsys):
-    from app.cli import main
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     folder, files, config = tiny
     _hf_cache(tmp_path / "hf-home", "stabilityai/stable-diffusion-2-base", folder)

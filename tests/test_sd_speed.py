@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import ModelNotFoundError, UserError
-from core.models.sd import load_stable_diffusion
-from core.models.sd_speed import apply_speed_options, cpu_has_bf16, unet_dtype
-from core.repaint.sds import SDSGuidance
+from repaint_nerf.core.errors import ModelNotFoundError, UserError
+from repaint_nerf.core.models.sd import load_stable_diffusion
+from repaint_nerf.core.models.sd_speed import apply_speed_options, cpu_has_bf16, unet_dtype
+from repaint_nerf.core.repaint.sds import SDSGuidance
 from repaint_scene import make_field, make_grid, make_scene
 from tiny_diffusion import cached
 
@@ -77,7 +77,7 @@ def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monk
 
     scene, masks = make_scene()
     field = make_field()
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     tr = RepaintTrainer(scene, field, make_grid(field), masks=masks, guidance="sd", prompt="a blue ball",
                         sd_path=sd.path, steps=3, max_samples=256, lambda_clip=0.0,  # no CLIP: this tests the SD path
@@ -93,7 +93,7 @@ def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monk
 
 
 def test_tiny_autoencoder_from_the_local_cache_without_network(tmp_path, monkeypatch):
-    from core.models.taesd import load_tiny_autoencoder
+    from repaint_nerf.core.models.taesd import load_tiny_autoencoder
 
     snap = tmp_path / "hf" / "hub" / "models--someone--taesd-tiny" / "snapshots" / "abc123"
     make_tiny_autoencoder(snap)
@@ -148,7 +148,7 @@ def test_profile_records_each_stage(sd):
 
 
 def test_annealed_timesteps_fall_linearly_and_uniform_stays():
-    from core.repaint.guidance import TimestepSampler
+    from repaint_nerf.core.repaint.guidance import TimestepSampler
 
     ab = torch.linspace(0.999, 0.01, 1000)
     uni = TimestepSampler(ab, (0.02, 0.98), torch.Generator().manual_seed(0))

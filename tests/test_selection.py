@@ -13,10 +13,10 @@ import pytest
 import torch
 from torch import nn
 
-from core.errors import UserError, WorkspaceError
-from core.select import (Patch, Selection, ViewCache, cosine_similarity, load_masks,
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.select import (Patch, Selection, ViewCache, cosine_similarity, load_masks,
                          masks_for_views, patch_query, similarity_map, threshold_mask, write_masks)
-from core.workspace.workspace import Workspace
+from repaint_nerf.core.workspace.workspace import Workspace
 
 
 # -- similarity ---------------------------------------------------------------------------------------
@@ -227,7 +227,7 @@ class Balls(nn.Module):
 
 
 def _ring_cameras(n=4, size=32, dist=2.6):
-    from core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
 
     poses = [look_at((dist * math.cos(a), dist * math.sin(a), 1.2), (0, 0, 0)) for a in
              np.linspace(0, 2 * math.pi, n, endpoint=False) + 0.3]
@@ -244,7 +244,7 @@ def _ball_gt(cams, i, center, radius):
 
 
 def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
-    from core.render.renderer import RenderOptions
+    from repaint_nerf.core.render.renderer import RenderOptions
 
     # ball 0 is the object; ball 1 looks the same (same feature) but is elsewhere; ball 2 differs
     centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
@@ -284,7 +284,7 @@ E2E_IOU = 0.8
 
 def _tiny_field_config():
     """A real NGPField, shrunk so a test trains it in seconds (4 levels, 2^12 table, small feature grid)."""
-    from core.field.field import default_field_config
+    from repaint_nerf.core.field.field import default_field_config
 
     return default_field_config("cpu", 32, levels=4, log2_table=12, finest_res=64, hidden=32, feature_levels=4,
                                 feature_log2_table=12, feature_finest_res=32, compile=False)
@@ -292,11 +292,11 @@ def _tiny_field_config():
 
 @pytest.fixture(scope="module")
 def trained_ws(scene_factory, tmp_path_factory):
-    from core.scene.loaders.detect import load_scene
-    from core.teachers.cache import build_feature_store
-    from core.teachers.depth_sparse import depth_for_scene
-    from core.teachers.feature_default import DefaultFeatureTeacher
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.teachers.cache import build_feature_store
+    from repaint_nerf.core.teachers.depth_sparse import depth_for_scene
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     root = scene_factory("demo", size=32, views=12)
     scene = load_scene(root)
@@ -316,7 +316,7 @@ def trained_ws(scene_factory, tmp_path_factory):
 
 
 def _patch_in(gts) -> Patch:
-    from core.bench.teacher import place_patch
+    from repaint_nerf.core.bench.teacher import place_patch
 
     view, (y0, y1, x0, x1) = place_patch(gts)
     return Patch(view, x0, y0, x1, y1)
@@ -343,7 +343,7 @@ def test_masks_from_one_query_agree_across_views(trained_ws):
 
 @pytest.mark.slow
 def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     ws, trainer, scene, gts = trained_ws
     p = _patch_in(gts)
@@ -361,9 +361,9 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
 
 
 def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):
-    from app.cli import main
-    from core.train.checkpoint import Checkpoint
-    from core.train.header import CheckpointHeader, GridFacts
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.train.header import CheckpointHeader, GridFacts
 
     ws, trainer, scene, gts = trained_ws
     w = int(scene.train.cameras.width[0])

@@ -9,17 +9,17 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import WorkspaceError
-from core.train.checkpoint import HEADER_KEY, Checkpoint, read_header
-from core.train.header import FORMAT_VERSION, CheckpointHeader, GridFacts
-from core.workspace import atomic
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.checkpoint import HEADER_KEY, Checkpoint, read_header
+from repaint_nerf.core.train.header import FORMAT_VERSION, CheckpointHeader, GridFacts
+from repaint_nerf.core.workspace import atomic
 
 
 @pytest.fixture(scope="module")
 def trained_ws(scene_factory, tmp_path_factory):
     """A workspace with a 12-step stage-1 checkpoint and its reconstruction version (features on)."""
-    from core.session import Teachers, start_reconstruction
-    from core.train.stage1 import TrainConfig
+    from repaint_nerf.core.session import Teachers, start_reconstruction
+    from repaint_nerf.core.train.stage1 import TrainConfig
 
     scene = scene_factory("demo", size=24, views=6, test_views=2)
     ws_root = tmp_path_factory.mktemp("ws")
@@ -47,7 +47,7 @@ def test_header_round_trip_and_newer_format_refused():
 
 
 def test_open_trained_restores_the_scene_as_trained(trained_ws):
-    from core.session import open_trained
+    from repaint_nerf.core.session import open_trained
 
     ws_root, rec = trained_ws
     t = open_trained(ws_root, "cpu", need_features=True)
@@ -64,7 +64,7 @@ def _copy(trained_ws, tmp_path, edit_header=None):
     changed by `edit_header(dict)` when given."""
     import shutil
 
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     copy = tmp_path / "ws"
     shutil.copytree(trained_ws[0], copy)
@@ -79,7 +79,7 @@ def _copy(trained_ws, tmp_path, edit_header=None):
 
 def test_open_trained_uses_the_recorded_normalisation(trained_ws, tmp_path):
     """A field lives in the space it was trained in: the header's normalisation wins over a recomputed one."""
-    from core.session import open_trained
+    from repaint_nerf.core.session import open_trained
 
     copy = _copy(trained_ws, tmp_path, lambda h: h["scene"].update(norm={"center": [0.25, -0.5, 1.0], "scale": 0.75}))
     t = open_trained(copy, "cpu")
@@ -88,7 +88,7 @@ def test_open_trained_uses_the_recorded_normalisation(trained_ws, tmp_path):
 
 
 def test_selection_needs_a_feature_head(trained_ws, tmp_path):
-    from core.session import open_trained
+    from repaint_nerf.core.session import open_trained
 
     copy = _copy(trained_ws, tmp_path, lambda h: h["field_config"].update(feature_dim=0))
     with pytest.raises(WorkspaceError, match="without a feature head"):
@@ -98,9 +98,9 @@ def test_selection_needs_a_feature_head(trained_ws, tmp_path):
 def test_format_1_workspace_still_opens(trained_ws, tmp_path):
     """Rewrite every file's header as format 1 wrote it (no history): the workspace opens for rendering, the
     engine resumes it, and saving writes the current format."""
-    from core.engine import Engine
-    from core.session import open_trained
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.session import open_trained
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     copy = _copy(trained_ws, tmp_path)
     ws = Workspace.open(copy)
@@ -122,7 +122,7 @@ def test_format_1_workspace_still_opens(trained_ws, tmp_path):
 
 def test_reopened_workspace_brings_its_training_history(trained_ws, tmp_path):
     """The editor's loss/PSNR plot after reopening shows the steps trained before, not one step's axis."""
-    from core.engine import Engine
+    from repaint_nerf.core.engine import Engine
 
     rec = trained_ws[1]
     copy = _copy(trained_ws, tmp_path)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import SceneError
-from core.sfm.evaluate import align_similarity, pose_errors
-from core.sfm.images import prepare_photos
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.sfm.evaluate import align_similarity, pose_errors
+from repaint_nerf.core.sfm.images import prepare_photos
 
 VIEWS, W, H = 20, 240, 180
 
@@ -33,8 +33,8 @@ def _noise(h: int, w: int, seed: int) -> np.ndarray:
 @pytest.fixture(scope="module")
 def sfm_run(tmp_path_factory):
     """20 views of the room360 preset plus an unrelated photo and a text file, through SfM once."""
-    from core.sfm.run import sfm_scene
-    from core.sfm.synthetic import render_photos
+    from repaint_nerf.core.sfm.run import sfm_scene
+    from repaint_nerf.core.sfm.synthetic import render_photos
 
     root = tmp_path_factory.mktemp("sfm")
     photos = root / "photos"
@@ -72,7 +72,7 @@ def test_report_lists_dropped_and_skipped_files(sfm_run):
 
 
 def test_scene_kind_points_and_sparse_depth(sfm_run):
-    from core.teachers.depth_sparse import depth_for_scene
+    from repaint_nerf.core.teachers.depth_sparse import depth_for_scene
 
     scene = sfm_run["scene"]
     assert scene.format == "photos" and scene.kind == "unbounded"
@@ -91,7 +91,7 @@ def test_scene_kind_points_and_sparse_depth(sfm_run):
 
 
 def test_second_open_is_cached_and_load_scene_uses_it(sfm_run):
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     t0 = time.perf_counter()
     scene = load_scene(sfm_run["photos"], workspace=sfm_run["root"] / "ws")
@@ -104,7 +104,7 @@ def test_second_open_is_cached_and_load_scene_uses_it(sfm_run):
 
 
 def test_cli_writes_the_json_report(sfm_run, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     out = sfm_run["root"] / "report.json"
     assert main(["sfm", str(sfm_run["photos"]), "--workspace", str(sfm_run["root"] / "ws"),
@@ -128,7 +128,7 @@ def test_similarity_alignment_is_exact_on_transformed_points():
 # ---- bad input -------------------------------------------------------------------------------------
 
 def test_fewer_than_three_photos(tmp_path):
-    from core.sfm.run import sfm_scene
+    from repaint_nerf.core.sfm.run import sfm_scene
 
     for i in range(2):
         _write(tmp_path / "p" / f"a{i}.png", _noise(64, 64, i))
@@ -138,7 +138,7 @@ def test_fewer_than_three_photos(tmp_path):
 
 
 def test_cli_bad_input_is_a_message_not_a_traceback(tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     (tmp_path / "p").mkdir()
     (tmp_path / "p" / "readme.md").write_text("x")
@@ -148,7 +148,7 @@ def test_cli_bad_input_is_a_message_not_a_traceback(tmp_path, capsys):
 
 
 def test_nothing_registers(tmp_path):
-    from core.sfm.run import sfm_scene
+    from repaint_nerf.core.sfm.run import sfm_scene
 
     for i in range(3):
         _write(tmp_path / "p" / f"n{i}.png", _noise(96, 128, 10 + i))
@@ -195,8 +195,8 @@ def test_intake_handles_exif_gray_alpha_large_mixed_and_junk(tmp_path):
 def test_field_trained_on_recovered_poses(sfm_run):
     """A field fitted for 150 steps on the SfM poses (normalised into the field cube) reaches a stated PSNR on
     the held-out views: measured 14.9 dB at 99 steps and 16.7 dB at 171; unnormalised poses gave 5 dB."""
-    from core.train.stage1 import Stage1Trainer, TrainConfig
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     scene = sfm_run["scene"]
     assert scene.extra["normalization"]["rule"] == "points"
@@ -210,7 +210,7 @@ def test_field_trained_on_recovered_poses(sfm_run):
 # ---- the model check (core.sfm.judge) --------------------------------------------------------------
 
 def _facts(focal=533.0, radial=(0.01,), exif=None, spread=4.0, err=0.6, registered=50, total=50, w=384, h=288):
-    from core.sfm.judge import CameraFacts, ModelFacts
+    from repaint_nerf.core.sfm.judge import CameraFacts, ModelFacts
 
     rng = np.random.default_rng(0)
     ang = np.linspace(0, 2 * np.pi, registered, endpoint=False)
@@ -220,7 +220,7 @@ def _facts(focal=533.0, radial=(0.01,), exif=None, spread=4.0, err=0.6, register
 
 
 def test_judge_trusts_a_plain_model():
-    from core.sfm.judge import judge
+    from repaint_nerf.core.sfm.judge import judge
 
     v = judge(_facts())
     assert v.trusted and v.reasons == [] and "trusted" in v.summary()
@@ -229,7 +229,7 @@ def test_judge_trusts_a_plain_model():
 
 def test_judge_rejects_the_shared_camera_failure():
     """The model seen in the field: focal 276 px instead of 533 at 384 px, k = 0.38 (corners moved by ~29%)."""
-    from core.sfm.judge import corner_distortion, judge
+    from repaint_nerf.core.sfm.judge import corner_distortion, judge
 
     facts = _facts(focal=276.0, radial=(0.38,))
     r2 = (192 ** 2 + 144 ** 2) / 276.0 ** 2
@@ -246,7 +246,7 @@ def test_judge_rejects_the_shared_camera_failure():
                                      ({"spread": 0.001}, "barely move"),
                                      ({"registered": 10, "total": 50}, "registered")])
 def test_judge_names_each_implausible_figure(kw, word):
-    from core.sfm.judge import judge
+    from repaint_nerf.core.sfm.judge import judge
 
     v = judge(_facts(**kw))
     assert not v.trusted and any(word in r for r in v.reasons), v.reasons
@@ -262,7 +262,7 @@ def test_judge_a_real_model_is_trusted(sfm_run):
 
 
 def _reject(cameras_rejected):
-    from core.sfm import judge as judge_mod
+    from repaint_nerf.core.sfm import judge as judge_mod
 
     real = judge_mod.judge
 
@@ -275,8 +275,8 @@ def _reject(cameras_rejected):
 
 
 def test_implausible_shared_model_is_repaired_with_per_image_cameras(sfm_run, monkeypatch, tmp_path):
-    from core.sfm import judge as judge_mod
-    from core.sfm.run import sfm_scene
+    from repaint_nerf.core.sfm import judge as judge_mod
+    from repaint_nerf.core.sfm.run import sfm_scene
 
     monkeypatch.setattr(judge_mod, "judge", _reject({"shared"}))
     said = []
@@ -289,8 +289,8 @@ def test_implausible_shared_model_is_repaired_with_per_image_cameras(sfm_run, mo
 
 
 def test_a_model_that_stays_implausible_is_an_error_not_registered(sfm_run, monkeypatch, tmp_path, capsys):
-    from app.cli import main
-    from core.sfm import judge as judge_mod
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.sfm import judge as judge_mod
 
     monkeypatch.setattr(judge_mod, "judge", _reject({"shared", "per-image"}))
     ws = tmp_path / "ws"

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from app.cli import main
+from repaint_nerf.app.cli import main
 
 
 @pytest.mark.timeout(240)

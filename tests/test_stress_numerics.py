@@ -15,9 +15,9 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core.render.analytic import BoxField, SphereField
-from core.render.composite import TAU_MAX, composite
-from core.render.renderer import RenderOptions, render_rays
+from repaint_nerf.core.render.analytic import BoxField, SphereField
+from repaint_nerf.core.render.composite import TAU_MAX, composite
+from repaint_nerf.core.render.renderer import RenderOptions, render_rays
 
 FAST = settings(max_examples=25, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.too_slow])
@@ -159,7 +159,7 @@ def test_render_with_occupancy_grid_at_extreme_density():
     """The occupancy-grid path (skipping, rounds without grad) at sigma = 1e8 equals the grid-free render: colour
     and opacity within 2e-3; depth within one grid cell (2/32), since a hard-edged surface loses the slivers of
     partially covered cells that the grid's point samples never hit (instant-ngp's rule, not a precision loss)."""
-    from core.render.occupancy import OccupancyGrid
+    from repaint_nerf.core.render.occupancy import OccupancyGrid
 
     field = SphereField(radius=0.5, sigma=1e8)
     grid = OccupancyGrid(resolution=32, bound=1.0)
@@ -179,7 +179,7 @@ def test_render_with_occupancy_grid_at_extreme_density():
 
 # -- hash grid -----------------------------------------------------------------------------------------
 def _grid():
-    from core.field.hashgrid import GridSpec
+    from repaint_nerf.core.field.hashgrid import GridSpec
 
     return GridSpec(levels=4, features=2, log2_table=10, base_res=4, finest_res=64, bound=1.0)
 
@@ -188,8 +188,8 @@ def _grid():
 def test_hash_grid_at_and_beyond_bounds(impl):
     """Points on the cube's faces and corners, just beyond, far beyond (1e30), infinite and NaN: finite output and
     table gradient; beyond the cube equals the clamped point; float32 equals the float64 reference within 1e-6."""
-    from core.field.encoding import encoder_fn
-    from core.field.hashgrid import encode_reference
+    from repaint_nerf.core.field.encoding import encoder_fn
+    from repaint_nerf.core.field.hashgrid import encode_reference
 
     spec = _grid()
     fn = encoder_fn(impl, compile=False)
@@ -213,8 +213,8 @@ def test_hash_grid_at_and_beyond_bounds(impl):
 def test_hash_grid_fast_paths_match_float64_reference(p):
     """Anywhere in and around the cube the fast paths equal the float64 reference (tolerance 1e-5 relative to
     the table scale: fp32 interpolation weights)."""
-    from core.field.hashgrid import encode_reference
-    from core.field.hashgrid_fast import encode_indexed, encode_vectorized
+    from repaint_nerf.core.field.hashgrid import encode_reference
+    from repaint_nerf.core.field.hashgrid_fast import encode_indexed, encode_vectorized
 
     spec = _grid()
     table = spec.init_table(generator=torch.Generator().manual_seed(1)) * 1e4
@@ -251,7 +251,7 @@ def test_composite_reduced_precision_inputs(dtype):
 def test_bf16_autocast_render_and_grid_on_cpu():
     """CPU autocast (bf16) through the hash grid + a small MLP and the renderer: finite, within bf16 rounding of
     the float32 render; the loss stays float32."""
-    from core.field.encoding import HashGridEncoding
+    from repaint_nerf.core.field.encoding import HashGridEncoding
 
     torch.manual_seed(0)
 
@@ -296,7 +296,7 @@ def test_cosine_similarity_any_scale_matches_float64(scale, seed):
     """Features scaled anywhere in [1e-30, 1e30] (and zero vectors): similarity in [-1, 1], finite, and equal to
     the float64 cosine within 1e-5 for |f| >= eps (1e-8); shorter vectors (empty space renders ~0 features) fade
     towards 0 as |f| / eps, never above the true cosine; a zero feature vector scores 0."""
-    from core.select.similarity import cosine_similarity
+    from repaint_nerf.core.select.similarity import cosine_similarity
 
     rng = np.random.default_rng(seed)
     f64 = rng.standard_normal((6, 8))
@@ -317,7 +317,7 @@ def test_cosine_similarity_any_scale_matches_float64(scale, seed):
 
 def test_cosine_similarity_zero_huge_and_nonfinite_vectors():
     """Zero query -> 0 everywhere; 3e38 entries (norm overflows float32) -> exact cosines; inf/NaN entries -> finite."""
-    from core.select.similarity import cosine_similarity
+    from repaint_nerf.core.select.similarity import cosine_similarity
 
     f = torch.tensor([[3e38, 3e38, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [float("inf"), 1.0, 0.0],
                       [float("nan"), 1.0, 0.0]])
@@ -334,8 +334,8 @@ def test_cosine_similarity_zero_huge_and_nonfinite_vectors():
 def test_thresholds_at_zero_and_one():
     """Threshold 0 selects exactly the positive similarities, 1 selects nothing (cos <= 1), NaN / out of range
     are UserErrors; a perfect match (s = 1) is not selected at 1 (strict >, the paper's mask equation)."""
-    from core.errors import UserError
-    from core.select.masks import similarity_map, threshold_mask
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.select.masks import similarity_map, threshold_mask
 
     feats = torch.tensor([[[1.0, 0.0], [0.0, 1.0]], [[-1.0, 0.0], [0.0, 0.0]]])
     s = similarity_map(feats, torch.tensor([1.0, 0.0]))
@@ -352,7 +352,7 @@ def test_thresholds_at_zero_and_one():
 def test_analytic_sds_gradient_at_extreme_timesteps(frac):
     """t pinned at 20/1000 and 980/1000 (and the schedule's ends, 0 and 999): the gradient reaching the render is
     2 w(t) sqrt(ab)/sqrt(1-ab) (x - x*) (float64 closed form) within 1e-4 relative, finite, and the loss is fp32."""
-    from core.repaint.analytic import AnalyticGuidance, sd_alphas_cumprod
+    from repaint_nerf.core.repaint.analytic import AnalyticGuidance, sd_alphas_cumprod
 
     g = torch.Generator().manual_seed(0)
     target = torch.rand(1, 3, 8, 8, generator=g)
@@ -377,8 +377,8 @@ def test_tiny_sd_sds_at_extreme_timesteps(frac, tmp_path_factory):  # the tiny S
     on the render, and a clip bound that holds (clip_value 1: |grad on latents| <= 1)."""
     from tiny_diffusion import cached
 
-    from core.models.sd import load_stable_diffusion
-    from core.repaint.sds import SDSGuidance
+    from repaint_nerf.core.models.sd import load_stable_diffusion
+    from repaint_nerf.core.repaint.sds import SDSGuidance
 
     sd = load_stable_diffusion(cached("sd", tmp_path_factory))
     guide = SDSGuidance(sd, "a rose", guidance_scale=100.0, t_range=(frac, frac), clip_value=1.0, seed=0)
@@ -394,7 +394,7 @@ def test_tiny_sd_sds_at_extreme_timesteps(frac, tmp_path_factory):  # the tiny S
 
 # -- the field ------------------------------------------------------------------------------------------
 def _small_field_cfg(**kw):
-    from core.field.field import FieldConfig
+    from repaint_nerf.core.field.field import FieldConfig
 
     base = dict(levels=4, features_per_level=2, log2_table=12, base_res=8, finest_res=64, hidden=16,
                 geo_feat_dim=7, sh_degree=2, encoding_impl="indexed", compile=False)
@@ -405,7 +405,7 @@ def _small_field_cfg(**kw):
 def test_density_activations_cannot_overflow():
     """trunc_exp and softplus over finite pre-activations from -1e30 to 1e30: finite values and gradients
     (trunc_exp also at +-inf; softplus(inf) = inf is left to the compositor, which caps optical depth)."""
-    from core.field.activations import ACTIVATIONS, trunc_exp
+    from repaint_nerf.core.field.activations import ACTIVATIONS, trunc_exp
 
     x = torch.tensor([-3e38, -1e30, -100.0, 0.0, 14.9, 15.0, 88.0, 1e30, 3e38], requires_grad=True)
     for name, fn in ACTIVATIONS.items():
@@ -423,7 +423,7 @@ def test_density_activations_cannot_overflow():
 def test_field_under_autocast_matches_fp32(dtype):
     """NGPField under CPU autocast (bf16, fp16 where CPU autocast runs it): sigma/rgb finite and within the dtype's
     rounding of fp32 (sigma relative 0.05, rgb 0.02 absolute); grads finite; at and beyond the bounds sigma = 0."""
-    from core.field.field import NGPField
+    from repaint_nerf.core.field.field import NGPField
 
     torch.manual_seed(0)
     field = NGPField(_small_field_cfg())
@@ -452,15 +452,15 @@ def test_field_under_autocast_matches_fp32(dtype):
 # -- training that survives --------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    from core.scene.loaders.detect import load_scene
-    from core.synth.generate import make_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
 
     path = make_scene("demo", tmp_path_factory.mktemp("stress") / "demo", size=16, views=6, seed=0, test_views=1)
     return load_scene(path, 1.0)
 
 
 def _trainer(scene, **kw):
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     cfg = TrainConfig(**{**dict(rays_per_batch=64, max_samples=32, grid_resolution=16, seed=0), **kw})
     return Stage1Trainer(scene, None, cfg, field_cfg=_small_field_cfg(), device="cpu")
@@ -478,7 +478,7 @@ def test_stage1_non_finite_steps_skipped_and_spikes_reported(tiny_scene, monkeyp
     """A NaN loss, then a finite loss with an infinite gradient: both steps are skipped, counted, reported in the
     step info, and leave the weights and the optimiser state untouched; the next step trains again. A finite loss
     1000x its running level is flagged as a spike (info['spike'], counted in info['spikes']); steady steps are not."""
-    from core.train import losses
+    from repaint_nerf.core.train import losses
 
     tr = _trainer(tiny_scene)
     infos = [tr.step() for _ in range(12)]
@@ -505,7 +505,7 @@ def test_stage1_non_finite_steps_skipped_and_spikes_reported(tiny_scene, monkeyp
 def test_stage1_high_learning_rate_stays_finite(tiny_scene):
     """lr 1.0 (100x the paper's) for 60 steps: every weight stays finite, every step's loss is finite or the step
     was skipped and counted, and the trainer still renders finite images."""
-    from core.render.renderer import render_camera
+    from repaint_nerf.core.render.renderer import render_camera
 
     tr = _trainer(tiny_scene, lr=1.0, schedule="const")
     infos = [tr.step() for _ in range(60)]
@@ -540,9 +540,9 @@ class _BadGuidance:
 
 
 def _repaint(scene, guidance, seed: int = 0):
-    from core.render.occupancy import OccupancyGrid
-    from core.field.field import NGPField
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.render.occupancy import OccupancyGrid
+    from repaint_nerf.core.field.field import NGPField
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     torch.manual_seed(0)
     field = NGPField(_small_field_cfg())

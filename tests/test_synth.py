@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import UserError
-from core.scene.cameras import Cameras
-from core.synth.generate import list_presets, make_scene
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.scene.cameras import Cameras
+from repaint_nerf.core.synth.generate import list_presets, make_scene
 
 PRESETS = list(list_presets())
 SIZE, VIEWS, TEST_VIEWS = 48, 3, 2
@@ -167,7 +167,7 @@ def test_bad_arguments_are_user_errors(tmp_path):
 
 
 def test_cli_make_scene(tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     assert main(["make-scene", "--list"]) == 0
     listed = capsys.readouterr().out
@@ -185,7 +185,7 @@ def test_cli_make_scene(tmp_path, capsys):
 
 
 def test_demo_scene_is_cached_and_written_atomically(tmp_path, monkeypatch):
-    import core.synth.demo as demo
+    import repaint_nerf.core.synth.demo as demo
 
     monkeypatch.setenv("REPAINT_NERF_CACHE", str(tmp_path))
     monkeypatch.setattr(demo, "DEMO_VIEWS", 2)
@@ -211,7 +211,7 @@ def test_demo_scene_is_cached_and_written_atomically(tmp_path, monkeypatch):
 
 def _render_one(obj) -> np.ndarray:
     """One object seen from above at 64 px: its straight RGB where it covers the pixel."""
-    from core.synth.raster import Rasterizer
+    from repaint_nerf.core.synth.raster import Rasterizer
 
     c2w = np.eye(4)
     c2w[:3, 3] = (0.0, 0.0, 2.0)  # OpenGL camera looking down -z at the origin
@@ -223,7 +223,7 @@ def _render_one(obj) -> np.ndarray:
 def test_photo_like_materials_change_the_image_as_described():
     from dataclasses import replace
 
-    from core.synth.presets import SceneObject
+    from repaint_nerf.core.synth.presets import SceneObject
 
     base = SceneObject("slab", "box", {"sx": 1.0, "sy": 1.0, "sz": 0.1}, (0.0, 0.0, 0.0), (0.6, 0.5, 0.4))
     flat = _render_one(base)

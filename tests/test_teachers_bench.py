@@ -20,8 +20,8 @@ def two_region_photo(h: int = 60, w: int = 80) -> np.ndarray:
 
 
 def test_photo_mask_from_a_patch_covers_its_region():
-    from core.bench.teacher import evaluate_photo, patch_box
-    from core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
+    from repaint_nerf.core.bench.teacher import evaluate_photo, patch_box
+    from repaint_nerf.core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
 
     img = two_region_photo()
     box = patch_box((0.1, 0.3, 0.3, 0.6), 60, 80)
@@ -41,7 +41,7 @@ def test_photo_mask_from_a_patch_covers_its_region():
 
 
 def test_bench_teacher_cli_on_a_photo(tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     photo = tmp_path / "photo.png"
     cv2.imwrite(str(photo), two_region_photo()[..., ::-1])

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.errors import ModelNotFoundError, UserError
-from core.workspace.workspace import Workspace
+from repaint_nerf.core.errors import ModelNotFoundError, UserError
+from repaint_nerf.core.workspace.workspace import Workspace
 
 TRAIN = ["--steps", "8", "--rays", "256", "--max-samples", "96"]
 IDS = {"dinov2": "tiny-org/dinov2", "clip": "tiny-org/clip", "siglip": "tiny-org/siglip", "dpt": "tiny-org/dpt",
@@ -47,7 +47,7 @@ def _image(h: int = 40, w: int = 56, seed: int = 0) -> np.ndarray:
 
 # -- where a model comes from ----------------------------------------------------------------------------------
 def test_cached_snapshot_follows_refs_main_and_never_guesses(models, tmp_path):
-    from core.models.paths import cached_snapshot, is_model_id, locate_model
+    from repaint_nerf.core.models.paths import cached_snapshot, is_model_id, locate_model
 
     snap = cached_snapshot(IDS["dinov2"])
     assert snap == models["hf_home"] / "hub" / "models--tiny-org--dinov2" / "snapshots" / "0123abcd"
@@ -67,7 +67,7 @@ def test_cached_snapshot_follows_refs_main_and_never_guesses(models, tmp_path):
                                            ("depth", "--depth-model", "REPAINT_NERF_DEPTH_MODEL"),
                                            ("sam", "--sam-path", "REPAINT_NERF_SAM_PATH")])
 def test_missing_model_names_flag_env_and_cache(kind, flag, var, models, tmp_path):
-    from core.models.paths import locate_model, resolve_model_path
+    from repaint_nerf.core.models.paths import locate_model, resolve_model_path
 
     with pytest.raises(ModelNotFoundError) as by_id:
         locate_model(kind, "nobody/absent")
@@ -84,8 +84,8 @@ def test_missing_model_names_flag_env_and_cache(kind, flag, var, models, tmp_pat
 # -- dense features ----------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["dinov2", "dinov2_reg", "clip", "siglip"])
 def test_feature_teacher_from_folder_and_cache(name, models):
-    from core.teachers.feature_hf import HFFeatureTeacher
-    from core.teachers.stage1_targets import FeatureModel, make_feature_teacher
+    from repaint_nerf.core.teachers.feature_hf import HFFeatureTeacher
+    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, make_feature_teacher
 
     t = make_feature_teacher(FeatureModel(str(models[name])))
     assert isinstance(t, HFFeatureTeacher)
@@ -113,8 +113,8 @@ def _upsampled_unit(tokens: torch.Tensor, grid: tuple[int, int], size: tuple[int
 def test_dinov2_features_are_its_patch_tokens_upsampled(models):
     from transformers import Dinov2WithRegistersModel
 
-    from core.teachers._onnx import prepare_input
-    from core.teachers.feature_hf import HFFeatureTeacher
+    from repaint_nerf.core.teachers._onnx import prepare_input
+    from repaint_nerf.core.teachers.feature_hf import HFFeatureTeacher
 
     t = HFFeatureTeacher(models["dinov2_reg"])
     img = _image(24, 32)
@@ -131,8 +131,8 @@ def test_maskclip_features_live_in_the_text_space(models):
     projection; recomputed here from the hidden states transformers returns."""
     from transformers import CLIPModel
 
-    from core.teachers._onnx import prepare_input
-    from core.teachers.feature_hf import HFFeatureTeacher
+    from repaint_nerf.core.teachers._onnx import prepare_input
+    from repaint_nerf.core.teachers.feature_hf import HFFeatureTeacher
 
     t = HFFeatureTeacher(models["clip"])
     img = _image(32, 32)
@@ -151,8 +151,8 @@ def test_maskclip_features_live_in_the_text_space(models):
 
 
 def test_unsupported_or_broken_feature_model_is_clear(models, tmp_path, capsys, scene_factory):
-    from app.cli import main
-    from core.teachers.stage1_targets import FeatureModel, make_feature_teacher
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, make_feature_teacher
 
     with pytest.raises(ModelNotFoundError, match="model_type 'sam' is not a supported feature backbone"):
         make_feature_teacher(FeatureModel(str(models["sam"])))
@@ -178,7 +178,7 @@ def test_unsupported_or_broken_feature_model_is_clear(models, tmp_path, capsys, 
 # -- training with them, selecting by text with one CLIP -----------------------------------------------------------
 @pytest.fixture(scope="module")
 def scene(scene_factory):
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     root = scene_factory("demo", size=32, views=12)
     return root, load_scene(root)
@@ -187,7 +187,7 @@ def scene(scene_factory):
 @pytest.fixture(scope="module")
 def clip_ws(scene, models, tmp_path_factory):
     """A workspace trained by the CLI with the tiny CLIP, named by its cached model id, as the feature teacher."""
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     mp = pytest.MonkeyPatch()
     mp.setenv("HF_HOME", str(models["hf_home"]))
@@ -207,12 +207,12 @@ def test_train_saves_the_cached_id(clip_ws):
 
 
 def test_select_text_with_one_clip_alone(clip_ws, scene, models, tmp_path, capsys):
-    from app.cli import main
-    from core.select.masks import load_masks
-    from core.select.selection import Selection
-    from core.teachers.cache import stored_codec
-    from core.teachers.stage1_targets import workspace_feature_teacher
-    from core.teachers.text import text_teacher
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.teachers.cache import stored_codec
+    from repaint_nerf.core.teachers.stage1_targets import workspace_feature_teacher
+    from repaint_nerf.core.teachers.text import text_teacher
 
     out = tmp_path / "masks"
     assert main(["select", str(clip_ws.root), "--text", "a red ball", "--out", str(out)]) == 0  # no --clip-path
@@ -232,8 +232,8 @@ def test_select_text_with_one_clip_alone(clip_ws, scene, models, tmp_path, capsy
 
 
 def test_text_needs_a_clip_teacher(models):
-    from core.teachers.stage1_targets import FeatureModel, make_feature_teacher
-    from core.teachers.text import text_teacher
+    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, make_feature_teacher
+    from repaint_nerf.core.teachers.text import text_teacher
 
     with pytest.raises(UserError, match="not CLIP-aligned") as exc:
         text_teacher(make_feature_teacher(FeatureModel(IDS["dinov2"])), models["clip"])
@@ -243,10 +243,10 @@ def test_text_needs_a_clip_teacher(models):
 # -- depth ---------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("name", ["dpt", "depth_anything"])
 def test_depth_teacher_from_folder_and_cache_aligns_to_sparse_depth(name, models):
-    from core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
-    from core.teachers.depth_hf import HFDepthTeacher
-    from core.teachers.depth_onnx import aligned_monocular_depth
-    from core.teachers.stage1_targets import make_depth_teacher
+    from repaint_nerf.core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
+    from repaint_nerf.core.teachers.depth_hf import HFDepthTeacher
+    from repaint_nerf.core.teachers.depth_onnx import aligned_monocular_depth
+    from repaint_nerf.core.teachers.stage1_targets import make_depth_teacher
 
     t = make_depth_teacher(str(models[name]))
     assert isinstance(t, HFDepthTeacher) and t.inverse
@@ -267,9 +267,9 @@ def test_depth_teacher_from_folder_and_cache_aligns_to_sparse_depth(name, models
 
 
 def test_depth_priors_with_a_cached_depth_model_save_its_id(scene, models, tmp_path, monkeypatch):
-    import core.teachers.depth_sparse as depth_sparse
-    from core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
-    from core.teachers.stage1_targets import depth_priors
+    import repaint_nerf.core.teachers.depth_sparse as depth_sparse
+    from repaint_nerf.core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
+    from repaint_nerf.core.teachers.stage1_targets import depth_priors
 
     def points(sc):
         rng = np.random.default_rng(0)
@@ -290,7 +290,7 @@ def test_depth_priors_with_a_cached_depth_model_save_its_id(scene, models, tmp_p
 
 # -- SAM refinement ------------------------------------------------------------------------------------------------
 def test_mask_prompt_is_the_largest_region_box_and_inside_point():
-    from core.teachers.sam_refine import grown_box, mask_prompt
+    from repaint_nerf.core.teachers.sam_refine import grown_box, mask_prompt
 
     m = np.zeros((40, 50), bool)
     m[10:30, 5:25] = True  # the object
@@ -303,8 +303,8 @@ def test_mask_prompt_is_the_largest_region_box_and_inside_point():
 
 
 def test_sam_refines_masks_inside_the_prompt_box(models):
-    from core.models.sam import load_sam
-    from core.teachers.sam_refine import grown_box, mask_prompt, refine_masks
+    from repaint_nerf.core.models.sam import load_sam
+    from repaint_nerf.core.teachers.sam_refine import grown_box, mask_prompt, refine_masks
 
     sam = load_sam(models["sam"])
     img = np.full((48, 60, 3), 40, np.uint8)
@@ -326,9 +326,9 @@ def test_sam_refines_masks_inside_the_prompt_box(models):
 
 
 def test_select_with_sam_path_refines_and_saves_the_choice(clip_ws, scene, models, tmp_path, capsys):
-    from app.cli import main
-    from core.select.masks import load_masks
-    from core.teachers.sam_refine import workspace_refiner
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.teachers.sam_refine import workspace_refiner
 
     base = ["select", str(clip_ws.root), "--view", "0", "--patch", "10,10,20,20"]
     assert main(base + ["--out", str(tmp_path / "a"), "--sam-path", IDS["sam"]]) == 0
@@ -345,8 +345,8 @@ def test_select_with_sam_path_refines_and_saves_the_choice(clip_ws, scene, model
 
 
 def test_editor_masks_use_the_workspaces_sam(clip_ws, scene, monkeypatch):
-    import core.teachers.sam_refine as sam_refine
-    from core.engine import Engine
+    import repaint_nerf.core.teachers.sam_refine as sam_refine
+    from repaint_nerf.core.engine import Engine
 
     calls = []
     real = sam_refine.refine_masks

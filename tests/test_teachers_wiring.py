@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from core.errors import ModelNotFoundError, UserError
-from core.workspace.workspace import Workspace
+from repaint_nerf.core.errors import ModelNotFoundError, UserError
+from repaint_nerf.core.workspace.workspace import Workspace
 
 D = 16  # feature dim of the tiny ONNX teacher and projection dim of the tiny CLIP (over the 12 cached dims)
 TRAIN = ["--steps", "8", "--rays", "256", "--max-samples", "96"]
@@ -31,7 +31,7 @@ def models(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene(scene_factory):
-    from core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
 
     root = scene_factory("demo", size=32, views=12)
     return root, load_scene(root)
@@ -47,7 +47,7 @@ def no_model_env(monkeypatch):
 @pytest.fixture(scope="module")
 def onnx_ws(scene, models, tmp_path_factory):
     """A workspace trained by the CLI with the ONNX feature and depth teachers."""
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     ws = tmp_path_factory.mktemp("onnx_ws") / "ws"
     assert main(["train", str(scene[0]), "--workspace", str(ws), *TRAIN, "--feature-model", str(models["feature"]),
@@ -56,15 +56,15 @@ def onnx_ws(scene, models, tmp_path_factory):
 
 
 def _onnx_teacher(models):
-    from core.models.clip import CLIP_MEAN, CLIP_STD
-    from core.teachers.feature_onnx import OnnxFeatureTeacher
+    from repaint_nerf.core.models.clip import CLIP_MEAN, CLIP_STD
+    from repaint_nerf.core.teachers.feature_onnx import OnnxFeatureTeacher
 
     return OnnxFeatureTeacher(models["feature"], input_size=(16, 24), mean=CLIP_MEAN, std=CLIP_STD)
 
 
 # -- feature teacher ---------------------------------------------------------------------------------------
 def test_train_feature_model_saves_the_choice_and_caches_its_features(onnx_ws, scene, models):
-    from core.teachers.cache import stored_codec, teacher_key
+    from repaint_nerf.core.teachers.cache import stored_codec, teacher_key
 
     s = onnx_ws.settings
     assert s["feature_model"] == {"path": str(models["feature"].resolve()), "input_size": [16, 24], "norm": "clip"}
@@ -76,8 +76,8 @@ def test_train_feature_model_saves_the_choice_and_caches_its_features(onnx_ws, s
     code_file = next((onnx_ws.teachers_dir / teacher_key(teacher)).glob("*/*.safetensors"))
     from safetensors.numpy import load_file
 
-    from core.teachers.base import check_image
-    from core.teachers.cache import image_hash
+    from repaint_nerf.core.teachers.base import check_image
+    from repaint_nerf.core.teachers.cache import image_hash
 
     images = [check_image(im) for im in scene[1].train.images]
     i = [image_hash(im) for im in images].index(code_file.stem)
@@ -86,8 +86,8 @@ def test_train_feature_model_saves_the_choice_and_caches_its_features(onnx_ws, s
 
 
 def test_reopening_uses_the_saved_teacher_and_cache(onnx_ws, models, tmp_path, monkeypatch):
-    import core.teachers.cache as cache
-    from core.engine import Engine
+    import repaint_nerf.core.teachers.cache as cache
+    from repaint_nerf.core.engine import Engine
 
     monkeypatch.setenv("REPAINT_NERF_FEATURE_MODEL", str(tmp_path / "other.onnx"))  # the saved choice wins
     built, real = [], cache.build_feature_store
@@ -102,7 +102,7 @@ def test_reopening_uses_the_saved_teacher_and_cache(onnx_ws, models, tmp_path, m
 
 
 def test_missing_feature_model_names_the_flag_and_loses_nothing(onnx_ws, scene, tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     fresh = tmp_path / "fresh"
     assert main(["train", str(scene[0]), "--workspace", str(fresh), *TRAIN,
@@ -121,7 +121,7 @@ def test_missing_feature_model_names_the_flag_and_loses_nothing(onnx_ws, scene, 
 
 
 def test_saved_model_that_moved_is_a_clear_error(tmp_path, models):
-    from core.teachers.stage1_targets import workspace_feature_teacher
+    from repaint_nerf.core.teachers.stage1_targets import workspace_feature_teacher
 
     ws = Workspace.create(tmp_path / "ws", {"feature_model": {"path": str(tmp_path / "gone.onnx"),
                                                               "input_size": None, "norm": "imagenet"}})
@@ -132,8 +132,8 @@ def test_saved_model_that_moved_is_a_clear_error(tmp_path, models):
 
 @pytest.mark.parametrize("text", ["24", "0x5", "axb", "24x", "-3x4"])
 def test_feature_size_parsing(text, capsys, tmp_path, scene):
-    from app.cli import main
-    from app.commands.train import parse_size
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.app.commands.train import parse_size
 
     assert parse_size("24x16") == (16, 24) and parse_size(" 8 X 9 ") == (9, 8) and parse_size(None) is None
     with pytest.raises(UserError, match="--feature-size"):
@@ -143,7 +143,7 @@ def test_feature_size_parsing(text, capsys, tmp_path, scene):
 
 
 def test_choice_order_flag_setting_env_default(tmp_path, models, monkeypatch):
-    from core.teachers.stage1_targets import FeatureModel, choose_feature_model
+    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, choose_feature_model
 
     ws = Workspace.create(tmp_path / "ws")
     assert choose_feature_model(ws) == (FeatureModel(), "default")
@@ -164,7 +164,7 @@ def test_choice_order_flag_setting_env_default(tmp_path, models, monkeypatch):
 # -- depth teacher -------------------------------------------------------------------------------------------
 def _sparse_points(scene) -> "DepthPriors":
     """20 sparse depth points per training image (the 32 px demo triangulates too few to align to)."""
-    from core.teachers.depth import DepthPriors, SparseDepth
+    from repaint_nerf.core.teachers.depth import DepthPriors, SparseDepth
 
     rng = np.random.default_rng(0)
     sizes = [im.shape[:2] for im in scene.train.images]
@@ -174,10 +174,10 @@ def _sparse_points(scene) -> "DepthPriors":
 
 
 def test_depth_model_gives_aligned_monocular_depth(scene, models, tmp_path, monkeypatch):
-    import core.teachers.depth_sparse as depth_sparse
-    from core.teachers.depth import DenseDepth, SparseDepth
-    from core.teachers.depth_onnx import OnnxDepthTeacher, aligned_monocular_depth
-    from core.teachers.stage1_targets import depth_priors
+    import repaint_nerf.core.teachers.depth_sparse as depth_sparse
+    from repaint_nerf.core.teachers.depth import DenseDepth, SparseDepth
+    from repaint_nerf.core.teachers.depth_onnx import OnnxDepthTeacher, aligned_monocular_depth
+    from repaint_nerf.core.teachers.stage1_targets import depth_priors
 
     sc = scene[1]
     monkeypatch.setattr(depth_sparse, "depth_for_scene", _sparse_points)
@@ -205,8 +205,8 @@ def test_depth_model_gives_aligned_monocular_depth(scene, models, tmp_path, monk
 
 
 def test_depth_model_without_sparse_points_says_so(scene, models, tmp_path, monkeypatch):
-    import core.teachers.depth_sparse as depth_sparse
-    from core.teachers.stage1_targets import depth_priors
+    import repaint_nerf.core.teachers.depth_sparse as depth_sparse
+    from repaint_nerf.core.teachers.stage1_targets import depth_priors
 
     def no_matches(scene):
         raise ValueError("too few matches to triangulate")
@@ -221,8 +221,8 @@ def test_depth_model_without_sparse_points_says_so(scene, models, tmp_path, monk
 
 # -- text queries ----------------------------------------------------------------------------------------------
 def test_encode_text_is_a_unit_vector_of_the_teacher_dim(models):
-    from core.teachers.feature_default import DefaultFeatureTeacher
-    from core.teachers.text import text_teacher
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.teachers.text import text_teacher
 
     t = text_teacher(_onnx_teacher(models), models["clip"])
     e = t.encode_text("a red ball")
@@ -239,10 +239,10 @@ def test_encode_text_is_a_unit_vector_of_the_teacher_dim(models):
 
 
 def test_select_text_cli_writes_masks_from_the_projected_embedding(onnx_ws, scene, models, tmp_path, capsys):
-    from app.cli import main
-    from core.select.masks import load_masks
-    from core.select.selection import Selection
-    from core.teachers.cache import stored_codec
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.teachers.cache import stored_codec
 
     out = tmp_path / "masks"
     assert main(["select", str(onnx_ws.root), "--text", "a red ball", "--clip-path", str(models["clip"]),
@@ -270,7 +270,7 @@ def test_select_text_cli_writes_masks_from_the_projected_embedding(onnx_ws, scen
 
 
 def test_select_text_cli_bad_inputs(onnx_ws, models, tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     base = ["select", str(onnx_ws.root), "--out", str(tmp_path / "o")]
     assert main(base + ["--text", "a ball", "--clip-path", str(models["clip8"])]) == 2
@@ -286,7 +286,7 @@ def test_select_text_cli_bad_inputs(onnx_ws, models, tmp_path, capsys):
 
 
 def test_engine_select_text(onnx_ws, models):
-    from core.engine import Engine
+    from repaint_nerf.core.engine import Engine
 
     eng = Engine("cpu")
     eng.load(onnx_ws.root)

@@ -11,15 +11,15 @@ import numpy as np
 import pytest
 import torch
 
-from core.train import losses
-from core.train.metrics import mse_to_psnr, psnr, ssim
-from core.train.progress import ProgressBar
-from core.train.schedule import LRSchedule
+from repaint_nerf.core.train import losses
+from repaint_nerf.core.train.metrics import mse_to_psnr, psnr, ssim
+from repaint_nerf.core.train.progress import ProgressBar
+from repaint_nerf.core.train.schedule import LRSchedule
 
 
 def _field_available() -> bool:
     try:
-        import core.field.field  # noqa: F401
+        import repaint_nerf.core.field.field as field  # noqa: F401
         return True
     except ImportError:
         return False
@@ -68,7 +68,7 @@ class TinyField(torch.nn.Module):
 
 
 def _use_standin(monkeypatch) -> str:
-    import core.train.stage1 as stage1
+    import repaint_nerf.core.train.stage1 as stage1
 
     def make(cfg=None, device=None, image_size=None):
         cfg = cfg or TinyFieldConfig()
@@ -93,15 +93,15 @@ def standin_field(monkeypatch):
 
 @pytest.fixture(scope="module")
 def tiny_scene(tmp_path_factory):
-    from core.scene.loaders.detect import load_scene
-    from core.synth.generate import make_scene
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
 
     path = make_scene("demo", tmp_path_factory.mktemp("demo32") / "demo", size=32, views=12, seed=0, test_views=3)
     return path, load_scene(path, 1.0)
 
 
 def _cfg(**kw):
-    from core.train.stage1 import TrainConfig
+    from repaint_nerf.core.train.stage1 import TrainConfig
 
     base = dict(rays_per_batch=1024, max_samples=128, grid_resolution=32, seed=0)
     base.update(kw)
@@ -165,7 +165,7 @@ def test_progress_bar_text():
 
 # -- the trainer ------------------------------------------------------------------------------------------
 def test_training_raises_test_psnr(tiny_scene, field_impl):
-    from core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
     tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=1024))
@@ -180,7 +180,7 @@ def test_training_raises_test_psnr(tiny_scene, field_impl):
 
 
 def test_seeded_and_reproducible(tiny_scene, standin_field):
-    from core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
     runs = []
@@ -191,7 +191,7 @@ def test_seeded_and_reproducible(tiny_scene, standin_field):
 
 
 def test_random_background_targets(tiny_scene, standin_field):
-    from core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
     tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096))
@@ -223,7 +223,7 @@ class _Spy:
 
 
 def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch):
-    import core.train.stage1 as stage1
+    import repaint_nerf.core.train.stage1 as stage1
 
     _, scene = tiny_scene
     spy = _Spy(stage1.render_rays)
@@ -236,7 +236,7 @@ def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch
 
 
 def test_feature_and_depth_losses_act_when_on(tiny_scene, standin_field, monkeypatch):
-    import core.train.stage1 as stage1
+    import repaint_nerf.core.train.stage1 as stage1
 
     _, scene = tiny_scene
     spy = _Spy(stage1.render_rays)
@@ -266,7 +266,7 @@ def test_feature_and_depth_losses_act_when_on(tiny_scene, standin_field, monkeyp
 def test_feature_targets_of_transparent_pixels_are_zero(tiny_scene, standin_field):
     """Empty space renders a zero feature, so an RGBA pixel's feature target is the teacher's times alpha
     (the teacher saw the image over white; chasing that feature grew floaters in the background)."""
-    from core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
     n = len(scene.train)
@@ -285,7 +285,7 @@ def test_feature_targets_of_transparent_pixels_are_zero(tiny_scene, standin_fiel
 def test_worst_rays_reopen_the_grid_in_front_of_their_surface(tiny_scene, standin_field, monkeypatch):
     """Each step hands the rays with the largest colour error (above reopen_error, at most reopen_fraction of
     the batch) to OccupancyGrid.reopen, up to their depth where they hit something, whole where they don't."""
-    from core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
 
     _, scene = tiny_scene
     calls = []
@@ -311,7 +311,7 @@ def test_worst_rays_reopen_the_grid_in_front_of_their_surface(tiny_scene, standi
 
 
 def test_sparse_depth_priors_get_extra_rays(tiny_scene, standin_field):
-    import core.train.stage1 as stage1
+    import repaint_nerf.core.train.stage1 as stage1
 
     _, scene = tiny_scene
     n = len(scene.train)
@@ -326,10 +326,10 @@ def test_sparse_depth_priors_get_extra_rays(tiny_scene, standin_field):
 
 # -- checkpoints --------------------------------------------------------------------------------------------
 def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path):
-    from core.render.renderer import RenderOptions, render_camera
-    from core.train.checkpoint import Checkpoint
-    from core.train.stage1 import Stage1Trainer, restore_field
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, restore_field
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     _, scene = tiny_scene
     ws = Workspace.create(tmp_path / "ws")
@@ -360,7 +360,7 @@ def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path
 
 # -- command line ----------------------------------------------------------------------------------------------
 def test_cli_train_and_render(tiny_scene, field_impl, tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     path, _ = tiny_scene
     ws = tmp_path / "ws"
@@ -388,7 +388,7 @@ def test_cli_train_and_render(tiny_scene, field_impl, tmp_path, capsys):
 
 
 def test_cli_bad_input(tmp_path, capsys):
-    from app.cli import main
+    from repaint_nerf.app.cli import main
 
     assert main(["train", str(tmp_path / "nope"), "--workspace", str(tmp_path / "ws"), "--steps", "1"]) == 2
     err = capsys.readouterr().err

@@ -5,7 +5,7 @@ import time
 
 import numpy as np
 
-from app.worker import Frame, Worker
+from repaint_nerf.app.worker import Frame, Worker
 
 
 class SlowEngine:

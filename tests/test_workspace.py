@@ -6,10 +6,10 @@ import json
 import pytest
 import torch
 
-from core.errors import WorkspaceError
-from core.train.checkpoint import Checkpoint
-from core.workspace import atomic
-from core.workspace.workspace import FORMAT_VERSION, Workspace
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.checkpoint import Checkpoint
+from repaint_nerf.core.workspace import atomic
+from repaint_nerf.core.workspace.workspace import FORMAT_VERSION, Workspace
 
 
 def _leftovers(folder):

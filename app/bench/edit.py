@@ -15,8 +15,8 @@ HELP = ("edit quality: under a drifting guidance with the default settings first
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from core.bench.edit import ABLATION
-    from core.repaint.objective import UNMASK_REDUCTIONS
+    from repaint_nerf.core.bench.edit import ABLATION
+    from repaint_nerf.core.repaint.objective import UNMASK_REDUCTIONS
 
     p.add_argument("--scene", default=None, help="scene folder with gt/ and edited/ (default: generate --preset)")
     p.add_argument("--preset", default="demo", help="synthetic preset to generate when no --scene is given")
@@ -45,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.bench.edit import EditBenchOptions, measure
+    from repaint_nerf.core.bench.edit import EditBenchOptions, measure
 
     opts = EditBenchOptions(
         scene=args.scene, preset=args.preset, size=args.size, views=args.views, test_views=args.test_views,

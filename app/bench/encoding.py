@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from core.bench.encoding import IMPLS, field_cases, time_case, time_field
+from repaint_nerf.core.bench.encoding import IMPLS, field_cases, time_case, time_field
 
 HELP = "time the hash-grid encoding (reference vs fast paths) for several table sizes and point counts"
 
@@ -43,8 +43,8 @@ def run_field(args: argparse.Namespace, device) -> list[dict]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.device import describe, get_device
-    from core.field.hashgrid import GridSpec
+    from repaint_nerf.core.device import describe, get_device
+    from repaint_nerf.core.field.hashgrid import GridSpec
 
     device = get_device()
     impls = [i for i in args.impls.split(",") if i]

@@ -18,7 +18,7 @@ HELP = ("mask IoU of patch selections against ground truth: automatic vs fixed v
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from core.bench.mask import presets
+    from repaint_nerf.core.bench.mask import presets
 
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scene", default=None, help="a scene folder with gt/objects.json and gt/ masks")
@@ -45,9 +45,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.bench.mask import MaskBenchConfig, bench_scene, presets, summarize
-    from core.device import describe, get_device
-    from core.errors import UserError
+    from repaint_nerf.core.bench.mask import MaskBenchConfig, bench_scene, presets, summarize
+    from repaint_nerf.core.device import describe, get_device
+    from repaint_nerf.core.errors import UserError
 
     if args.steps < 1 or args.evals < 1:
         raise UserError("--steps and --evals must be at least 1")
@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
                                 "use a scene written by `repaint-nerf make-scene`")
             items = [(root.name, lambda r=root: r)]
         else:
-            from core.synth.generate import make_scene
+            from repaint_nerf.core.synth.generate import make_scene
 
             names = presets() if args.preset == "all" else (args.preset,)
             items = [(n, lambda n=n: make_scene(n, Path(tmp) / n, size=args.size, views=args.views, seed=args.seed,

@@ -6,7 +6,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from core.bench.recon import NERFACTO, TARGET_PSNR, measure
+from repaint_nerf.core.bench.recon import NERFACTO, TARGET_PSNR, measure
 
 HELP = "reconstruction speed: test PSNR against seconds, render time, samples per ray, step-time breakdown"
 
@@ -55,8 +55,8 @@ def plot(result: dict, path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.errors import UserError
-    from core.workspace import atomic
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.workspace import atomic
 
     if not args.seconds > 0:
         raise UserError(f"--seconds must be positive, got {args.seconds}")
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     if args.scene:
         scene_path = Path(args.scene)
     else:
-        from core.synth.generate import make_scene
+        from repaint_nerf.core.synth.generate import make_scene
 
         tmp = tempfile.TemporaryDirectory(prefix="repaint-nerf-bench-")
         print(f"generating preset '{args.preset}' ({args.views} views, {args.size}px) ...")

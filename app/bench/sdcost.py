@@ -12,7 +12,7 @@ STAGES = ("resize", "encode_forward", "unet_forward", "loss", "rest", "backward"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from core.bench.sdcost import FAMILIES, OPTIONS
+    from repaint_nerf.core.bench.sdcost import FAMILIES, OPTIONS
 
     p.add_argument("--steps", type=int, default=2, help="timed steps per option (after one warm-up step each)")
     p.add_argument("--size", type=int, default=128, help="render side in pixels (resized to the SDS resolution)")
@@ -38,7 +38,7 @@ def table(result: dict, cpu: bool = False) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.bench.sdcost import measure
+    from repaint_nerf.core.bench.sdcost import measure
 
     names = [n.strip() for n in args.options.split(",") if n.strip()] if args.options else None
     out = Path(args.json)

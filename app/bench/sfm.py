@@ -6,7 +6,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from core.bench.sfm import bench_one
+from repaint_nerf.core.bench.sfm import bench_one
 
 HELP = "structure-from-motion: seconds per phase and pose error against the truth for several photo counts"
 
@@ -29,9 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.device import describe
-    from core.errors import UserError
-    from core.workspace import atomic
+    from repaint_nerf.core.device import describe
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.workspace import atomic
 
     try:
         counts = [int(v) for v in str(args.views).split(",") if v.strip()]

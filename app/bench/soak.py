@@ -39,10 +39,10 @@ def _rss_mb() -> float:
 
 def _small_engine(size: int, root: Path, seed: int):
     """An Engine on a generated demo scene with a small field and batch (the soak tests the plumbing)."""
-    from core.engine import Engine
-    from core.field.field import FieldConfig
-    from core.synth.generate import make_scene
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.field.field import FieldConfig
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     scene_dir = make_scene("demo", root / "demo", size=size, views=6, seed=seed, test_views=1)
     engine = Engine("cpu")
@@ -63,7 +63,7 @@ def run_soak(requests: int = 300, size: int = 16, scale: float = 0.5, seed: int 
     'deadlocks' counts resting views whose frame did not come within `deadline` seconds; 'crashes' holds the
     worker's Crashed messages. Raises nothing for those: the caller judges the report.
     """
-    from app.worker import Crashed, Frame, Reply, Status, Worker
+    from repaint_nerf.app.worker import Crashed, Frame, Reply, Status, Worker
 
     rng = random.Random(seed)
     tmp = None
@@ -159,7 +159,7 @@ def run_soak(requests: int = 300, size: int = 16, scale: float = 0.5, seed: int 
 
 def run(args: argparse.Namespace) -> int:
     """The command: run the soak and write the JSON report; exit 1 on a deadlock, a crash or a dead worker."""
-    from core.device import describe
+    from repaint_nerf.core.device import describe
 
     def progress(done: int, total: int) -> None:
         if done % 500 < 12:

@@ -20,7 +20,7 @@ HELP = ("feature-teacher quality: patch-query mask IoU against ground truth on p
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from core.bench.teacher import PRESETS
+    from repaint_nerf.core.bench.teacher import PRESETS
 
     p.add_argument("--preset", action="append", choices=PRESETS, help="synthetic preset (repeatable; default: all)")
     p.add_argument("--scene", default=None, help="a scene folder with gt/ masks (instead of generated presets)")
@@ -50,8 +50,8 @@ def sample_photo() -> Path:
 
 
 def _teachers(models: list[str]) -> list:
-    from core.teachers.feature_default import DefaultFeatureTeacher
-    from core.teachers.stage1_targets import DEFAULT_FEATURE, FeatureModel, make_feature_teacher
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.teachers.stage1_targets import DEFAULT_FEATURE, FeatureModel, make_feature_teacher
 
     out = [DefaultFeatureTeacher()]
     for m in models:
@@ -67,9 +67,9 @@ def _label(teacher) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.bench.teacher import JACKET_PATCH, evaluate_scene
-    from core.device import describe
-    from core.errors import UserError
+    from repaint_nerf.core.bench.teacher import JACKET_PATCH, evaluate_scene
+    from repaint_nerf.core.device import describe
+    from repaint_nerf.core.errors import UserError
 
     out = Path(args.json)
     png = Path(args.png) if args.png else out.with_suffix(".png")
@@ -84,8 +84,8 @@ def run(args: argparse.Namespace) -> int:
                                 "use a scene written by `repaint-nerf make-scene`")
             items = [(Path(args.scene).name, Path(args.scene))]
         elif not args.no_presets:
-            from core.bench.teacher import PRESETS
-            from core.synth.generate import make_scene
+            from repaint_nerf.core.bench.teacher import PRESETS
+            from repaint_nerf.core.synth.generate import make_scene
 
             items = [(p, make_scene(p, Path(tmp) / p, size=args.size, views=args.views, seed=0, test_views=1))
                      for p in (args.preset or PRESETS)]
@@ -126,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _fractions(text: str) -> tuple[float, float, float, float]:
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     try:
         x0, y0, x1, y1 = (float(v) for v in text.split(","))
@@ -140,9 +140,9 @@ def _fractions(text: str) -> tuple[float, float, float, float]:
 
 def run_photo(photo: Path, rect, teachers: list, sam_path: str | None = None) -> tuple[dict, list[np.ndarray]]:
     """Each teacher's mask from the patch `rect` (fractions) on the photograph: figures and picture rows."""
-    from core.bench.teacher import evaluate_photo, patch_box
-    from core.errors import UserError
-    from core.teachers.feature_default import DEFAULT_THRESHOLD
+    from repaint_nerf.core.bench.teacher import evaluate_photo, patch_box
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.teachers.feature_default import DEFAULT_THRESHOLD
 
     bgr = cv2.imread(str(photo), cv2.IMREAD_COLOR)
     if bgr is None:
@@ -151,8 +151,8 @@ def run_photo(photo: Path, rect, teachers: list, sam_path: str | None = None) ->
     box = patch_box(rect, *rgb.shape[:2])
     refine = None
     if sam_path:
-        from core.models.sam import load_sam
-        from core.teachers.sam_refine import refine_masks
+        from repaint_nerf.core.models.sam import load_sam
+        from repaint_nerf.core.teachers.sam_refine import refine_masks
 
         sam = load_sam(sam_path)
         refine = lambda masks: refine_masks([rgb], masks, sam)  # noqa: E731
@@ -196,7 +196,7 @@ def _overlay(image: np.ndarray, mask: np.ndarray) -> np.ndarray:
 
 def picture_row(images, sims, gts, threshold, view, box, n: int = 4) -> np.ndarray:
     """Image | similarity | mask (green = hit, red = miss, blue = false) for a few views, RGB uint8."""
-    from core.bench.teacher import teacher_input
+    from repaint_nerf.core.bench.teacher import teacher_input
 
     picks = [view] + [i for i in np.linspace(0, len(images) - 1, n).round().astype(int) if i != view][:n - 1]
     tiles = []

@@ -43,12 +43,12 @@ def _ensure_display():
     """Start an Xvfb for the run when there is no DISPLAY; returns the process to stop (or None)."""
     if os.environ.get("DISPLAY"):
         return None
-    from app.xvfb import start_xvfb
+    from repaint_nerf.app.xvfb import start_xvfb
 
     try:
         return start_xvfb(140, 200, "1920x1080x24")[0]
     except FileNotFoundError:
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         raise UserError("no DISPLAY and Xvfb is not installed", hint="run `bash install.sh` or set DISPLAY") from None
 
@@ -58,7 +58,7 @@ def _pct(xs, q):
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.engine import Engine
+    from repaint_nerf.core.engine import Engine
 
     missing = {k: v for k, v in Engine.capabilities().items() if k in ("load", "demo", "field", "render", "train") and v}
     if missing:
@@ -82,7 +82,7 @@ PATCH_DRAG_S = 0.3  # how long the scripted patch drag lasts, as a user's
 def _select_ms(app, patch, drag_s: float = PATCH_DRAG_S) -> float | None:
     """A patch dragged over the viewport as a user does (press, `drag_s` seconds of movement, release, by
     injected mouse input); milliseconds from the release to the end of the frame that shows its mask."""
-    from app.window import mouse_event
+    from repaint_nerf.app.window import mouse_event
 
     ox, oy = app.image_origin
     w, h = app.view_size
@@ -127,8 +127,8 @@ def _drag(app, seconds: float) -> dict:
 
 
 def _bench(args, engine) -> int:
-    from app.editor import EditorApp
-    from app.window import Window
+    from repaint_nerf.app.editor import EditorApp
+    from repaint_nerf.app.window import Window
 
     window = Window(width=args.width, height=args.height)
     app = EditorApp(window, engine, args.scene)
@@ -207,7 +207,7 @@ def _bench(args, engine) -> int:
     finally:
         app.close()
         window.close()
-    from core.device import describe
+    from repaint_nerf.core.device import describe
 
     result["device"] = describe()
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)

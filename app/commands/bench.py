@@ -15,11 +15,11 @@ HELP = "run a benchmark (recon, mask, edit, sdcost, viewport, ...) and write its
 
 def _benchmarks():
     """(name, module) of every driver in app/bench."""
-    import app.bench
+    import repaint_nerf.app.bench as bench
 
-    for info in sorted(pkgutil.iter_modules(app.bench.__path__), key=lambda m: m.name):
+    for info in sorted(pkgutil.iter_modules(bench.__path__), key=lambda m: m.name):
         if not info.name.startswith("_"):
-            yield info.name, f"app.bench.{info.name}"
+            yield info.name, f"repaint_nerf.app.bench.{info.name}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

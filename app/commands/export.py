@@ -68,23 +68,23 @@ def _size(n: int) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.export.source import open_workspace
+    from repaint_nerf.core.export.source import open_workspace
 
     source = open_workspace(args.workspace, args.device)
     with _bar(f"export {args.kind}") as progress:
         if args.kind == "mesh":
-            from core.export.mesh import MeshOptions, export_mesh
+            from repaint_nerf.core.export.mesh import MeshOptions, export_mesh
 
             opts = MeshOptions(args.resolution, args.level, args.bbox, args.min_component, args.selection)
             info = export_mesh(source, args.out, opts, progress=progress)
             what = f"{info['vertices']} vertices, {info['faces']} faces, level {info['level']:.3g}"
         elif args.kind == "points":
-            from core.export.points import export_points
+            from repaint_nerf.core.export.points import export_points
 
             info = export_points(source, args.out, args.selection, max_points=args.max_points, progress=progress)
             what = f"{info['points']} points"
         else:
-            from core.export.dataset import export_dataset
+            from repaint_nerf.core.export.dataset import export_dataset
 
             info = export_dataset(source, args.out, masks=not args.no_masks, progress=progress)
             what = f"{info['frames']} frames" + (" with masks" if info["masks"] else "")

@@ -18,8 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from core.scene.loaders.detect import load_scene
-    from core.scene.loaders.summary import format_summary, scene_summary
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.scene.loaders.summary import format_summary, scene_summary
 
     info = scene_summary(load_scene(args.path, downscale=args.downscale, kind=args.kind))
     print(json.dumps(info, indent=2) if args.json else format_summary(info))

@@ -19,8 +19,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.errors import UserError
-    from core.synth.generate import list_presets, make_scene
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.synth.generate import list_presets, make_scene
 
     if args.list:
         presets = list_presets()

@@ -13,6 +13,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from app.editor import run_editor  # a missing GUI package is an ImportError, not a quiet exit
+    from repaint_nerf.app.editor import run_editor  # a missing GUI package is an ImportError, not a quiet exit
 
     return run_editor(args.path, workspace=args.workspace)

@@ -44,13 +44,13 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from app.camera_control import CameraControl
-    from core.errors import UserError
-    from core.render.renderer import RenderOptions, render_camera
-    from core.scene.cameras import Cameras
-    from core.session import open_trained
-    from core.train.metrics import psnr
-    from core.train.stage1 import target_image
+    from repaint_nerf.app.camera_control import CameraControl
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.scene.cameras import Cameras
+    from repaint_nerf.core.session import open_trained
+    from repaint_nerf.core.train.metrics import psnr
+    from repaint_nerf.core.train.stage1 import target_image
 
     if not args.scale > 0:
         raise UserError(f"--scale must be positive, got {args.scale}")
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
 
     video_name = "turntable" if args.split == "turntable" else None
     if args.camera_path:
-        from core.export.camera_path import load_camera_path
+        from repaint_nerf.core.export.camera_path import load_camera_path
 
         path = load_camera_path(args.camera_path)
         cams, images, video_name = path.cameras(scene.norm), None, "camera_path"
@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
     if scores:
         print(f"{args.split} PSNR {np.mean(scores):.2f} dB over {len(scores)} views")
     if video_name:
-        from core.export.video import write_video
+        from repaint_nerf.core.export.video import write_video
 
         for suffix in (".mp4", ".gif") if args.gif else (".mp4",):
             info = write_video(frames, out_dir / f"{video_name}{suffix}", args.fps or 30.0)

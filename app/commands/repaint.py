@@ -8,8 +8,8 @@ import signal
 import sys
 import threading
 
-from core.repaint import registry
-from core.repaint.config import OPTIMIZERS, UNMASK_REDUCTIONS, RepaintConfig
+from repaint_nerf.core.repaint import registry
+from repaint_nerf.core.repaint.config import OPTIMIZERS, UNMASK_REDUCTIONS, RepaintConfig
 
 NAME = "repaint"
 HELP = "repaint the selected region (stage 2) under a guidance and save it as a new workspace version"
@@ -91,7 +91,7 @@ def config_from_args(args: argparse.Namespace) -> RepaintConfig:
 
 def check_args(args: argparse.Namespace) -> None:
     """Reject bad values with one clear message each (before anything is loaded)."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if args.steps < 1:
         raise UserError(f"--steps must be at least 1, got {args.steps}")
@@ -108,7 +108,7 @@ def check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--mask-dilation must not be negative, got {args.mask_dilation}")
     if registry.get(args.guidance).needs_prompt and not args.prompt.strip():
         raise UserError("--prompt is empty", hint="say what the selection should become, e.g. --prompt 'a blue rose'")
-    from core.repaint.colors import resolve_color
+    from repaint_nerf.core.repaint.colors import resolve_color
 
     if args.color is not None:
         resolve_color("", args.color)
@@ -118,10 +118,10 @@ def check_args(args: argparse.Namespace) -> None:
 
 def open_workspace(path: str, device=None):
     """(workspace, scene, field, grid, masks) of a workspace's current version and its selection's masks."""
-    from core.errors import WorkspaceError
-    from core.select.masks import load_masks
-    from core.session import open_trained, trained_path
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.errors import WorkspaceError
+    from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.session import open_trained, trained_path
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     ws = Workspace.open(path)
     trained_path(ws)  # no field: that error first
@@ -134,15 +134,15 @@ def open_workspace(path: str, device=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.repaint.estimate import format_duration
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.repaint.estimate import format_duration
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     check_args(args)
     cfg = config_from_args(args)
     needed = registry.models_needed(args.guidance, cfg)
     if needed:  # name a missing model before the field and scene load
-        from core.models.paths import resolve_model_path
-        from core.workspace.workspace import Workspace
+        from repaint_nerf.core.models.paths import resolve_model_path
+        from repaint_nerf.core.workspace.workspace import Workspace
 
         settings = Workspace.open(args.workspace).settings
         for kind in needed:

@@ -40,8 +40,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _patches(args) -> list:
     """The --patch/--add/--sub rectangles of --view; --add/--sub without --patch is a UserError."""
-    from core.errors import UserError
-    from core.select.query import Patch
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.select.query import Patch
 
     if args.text is not None:
         if args.add or args.sub:
@@ -56,7 +56,7 @@ def _patches(args) -> list:
 
 def _check_patches(patches: list, cams, view: int | None) -> None:
     """Raise a UserError unless --view exists and every patch lies inside it."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if not patches:
         return
@@ -82,10 +82,10 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from core.select.autothreshold import selection_auto_threshold
-    from core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
-    from core.select.selection import Selection
-    from core.session import open_trained
+    from repaint_nerf.core.select.autothreshold import selection_auto_threshold
+    from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.session import open_trained
 
     threshold = None if args.threshold is None else check_threshold(args.threshold)
     patches = _patches(args)
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
     ws, scene, field, grid = trained.workspace, trained.scene, trained.field, trained.grid
     cams = scene.field_cameras("train")
     _check_patches(patches, cams, args.view)
-    from core.teachers.sam_refine import workspace_refiner
+    from repaint_nerf.core.teachers.sam_refine import workspace_refiner
 
     refine = workspace_refiner(ws, scene.train.images, args.sam_path)  # a missing SAM fails before any render
 
@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
                     cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
                     teacher=str(ws.settings.get("teacher") or "default"))
     if args.text is not None:
-        from core.teachers.text import workspace_text_query
+        from repaint_nerf.core.teachers.text import workspace_text_query
 
         sel.add_text(args.text, *workspace_text_query(scene, ws, args.clip_path))
     else:
@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})
     sel_copy = out / "selection.json"
-    from core.workspace import atomic
+    from repaint_nerf.core.workspace import atomic
 
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])

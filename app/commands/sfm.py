@@ -25,9 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.sfm.judge import Verdict
-    from core.sfm.run import sfm_scene
-    from core.workspace import atomic
+    from repaint_nerf.core.sfm.judge import Verdict
+    from repaint_nerf.core.sfm.run import sfm_scene
+    from repaint_nerf.core.workspace import atomic
 
     def progress(phase: str, frac: float, msg: str) -> None:
         if frac == 0.0 or frac >= 1.0:

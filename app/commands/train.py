@@ -58,7 +58,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _positive(name: str, value, allow_none=True):
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if value is None and allow_none:
         return
@@ -70,7 +70,7 @@ def parse_size(text: str | None, flag: str = "--feature-size") -> tuple[int, int
     """'WxH' -> (H, W) pixels (the order the teachers take); malformed or non-positive is a UserError."""
     import re
 
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if text is None:
         return None
@@ -84,10 +84,10 @@ def parse_size(text: str | None, flag: str = "--feature-size") -> tuple[int, int
 def check_model_flags(args: argparse.Namespace) -> None:
     """Fail on a missing --feature-model / --depth-model (file, folder or cached id) before any workspace is
     touched; a broken one fails when its teacher loads, also before the workspace changes."""
-    from core.models.paths import locate_model, model_type
-    from core.models.depth import check_depth_model
-    from core.models.vision import check_backbone
-    from core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
+    from repaint_nerf.core.models.paths import locate_model, model_type
+    from repaint_nerf.core.models.depth import check_depth_model
+    from repaint_nerf.core.models.vision import check_backbone
+    from repaint_nerf.core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
 
     if args.feature_model and args.feature_model != DEFAULT_FEATURE and not args.no_features:
         path = locate_model("feature", args.feature_model)
@@ -100,12 +100,12 @@ def check_model_flags(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from core.errors import SceneError
-    from core.scene.loaders.common import DEFAULT_MAX_SIZE, check_max_size
-    from core.session import LoadAs, Teachers, start_reconstruction
-    from core.train.budget import CommandBudget
-    from core.train.progress import ProgressBar
-    from core.train.stage1 import TrainConfig
+    from repaint_nerf.core.errors import SceneError
+    from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE, check_max_size
+    from repaint_nerf.core.session import LoadAs, Teachers, start_reconstruction
+    from repaint_nerf.core.train.budget import CommandBudget
+    from repaint_nerf.core.train.progress import ProgressBar
+    from repaint_nerf.core.train.stage1 import TrainConfig
 
     scene_path = Path(args.scene)
     if not scene_path.exists():

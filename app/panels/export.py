@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from imgui_bundle import imgui
 
-from app.panels.common import remember_item, unavailable
+from repaint_nerf.app.panels.common import remember_item, unavailable
 
 
 def _browse(app, attr: str, folder: bool = False) -> None:

@@ -6,10 +6,10 @@ from typing import Any
 
 from imgui_bundle import imgui
 
-from app.panels.common import remember_item, unavailable
-from app.state import EditorState
-from core.repaint import registry
-from core.repaint.estimate import format_duration
+from repaint_nerf.app.panels.common import remember_item, unavailable
+from repaint_nerf.app.state import EditorState
+from repaint_nerf.core.repaint import registry
+from repaint_nerf.core.repaint.estimate import format_duration
 
 
 def repaint_request(s: EditorState) -> dict[str, Any]:
@@ -26,7 +26,7 @@ def _model_status(app, kind: str, flag: str) -> str | None:
     cache = app.cache.setdefault("model_status", {})
     if key not in cache:
         try:
-            from core.models.paths import resolve_model_path
+            from repaint_nerf.core.models.paths import resolve_model_path
 
             resolve_model_path(kind, flag or None, settings=app.state.scene_info.get("settings"))
             cache[key] = None
@@ -45,8 +45,8 @@ def _estimate(app) -> str:
     cache = app.cache.setdefault("repaint_estimate", {})
     if key not in cache:
         try:
-            from core.device import get_device
-            from core.repaint.estimate import estimate_before_start
+            from repaint_nerf.core.device import get_device
+            from repaint_nerf.core.repaint.estimate import estimate_before_start
 
             w, h = (int(cams.width[0]), int(cams.height[0])) if cams is not None else (128, 128)
             cache[key] = estimate_before_start(s.backend, max(1, int(cfg.steps)), w, h,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from imgui_bundle import imgui, implot
 
-from app.panels.common import unavailable
+from repaint_nerf.app.panels.common import unavailable
 
 
 def draw(app) -> None:

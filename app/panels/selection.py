@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from imgui_bundle import imgui
 
-from app.panels.common import remember_item, unavailable
+from repaint_nerf.app.panels.common import remember_item, unavailable
 
 
 def draw(app) -> None:
@@ -50,7 +50,7 @@ def take_auto_threshold(state, similarity) -> None:
     moves to it for a new selection, and for an added/subtracted patch unless the user moved the slider."""
     if state.select_rect is None:
         return
-    from core.select.autothreshold import patch_auto_threshold
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold
 
     rect, mode = state.select_rect
     state.select_rect = None

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from imgui_bundle import imgui
 
-from app.viewport import MODE_LABELS
+from repaint_nerf.app.viewport import MODE_LABELS
 
 
 def draw(app) -> None:

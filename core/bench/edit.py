@@ -56,7 +56,7 @@ class EditBenchOptions:
 
 def read_gt_masks(root: Path, split: str, names: list[str], object_id: int) -> list[np.ndarray]:
     """Ground-truth masks of one object (bool (H, W)) for the named views of a split."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     out = []
     for n in names:
@@ -80,10 +80,10 @@ def read_images(folder: Path, names: list[str]) -> list[np.ndarray]:
 def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
     """The selection `bench mask` makes (a patch inside the object, from the gt mask): masks of the training
     views, of the test views, and {'patch', 'train_iou'}."""
-    from core.bench.teacher import place_patch
-    from core.select.masks import masks_for_views, render_view_maps
-    from core.select.query import Patch
-    from core.select.selection import Selection
+    from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.select.masks import masks_for_views, render_view_maps
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.select.selection import Selection
 
     view, (y0, y1, x0, x1) = place_patch(gt_train)
     patch = Patch(view, x0, y0, x1, y1)
@@ -99,7 +99,7 @@ def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
 
 def edit_config(opts: EditBenchOptions, steps: int, max_samples: int, **changes):
     """The RepaintConfig of one bench run: the defaults, the options given, then `changes`."""
-    from core.repaint.trainer import RepaintConfig
+    from repaint_nerf.core.repaint.trainer import RepaintConfig
 
     given = {k: getattr(opts, k) for k in ("optimizer", "unmask_reduction", "lambda_unmask")
              if getattr(opts, k) is not None}
@@ -111,7 +111,7 @@ def run_edit(scene, state, masks, guidance: str, cfg, test, evals=(), prompt: st
              own_test_masks=None) -> dict:
     """One edit from the stage-1 `state` under `cfg`; evaluates at `evals` steps (and at 0 and the end);
     with `own_test_masks` also the unmasked PSNR outside the edit's own mask, before and after."""
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     field_, grid = state["make"]()
     t0 = time.perf_counter()
@@ -146,18 +146,18 @@ def _row(cfg, r: dict, before: dict) -> dict:
 
 def measure(opts: EditBenchOptions, workdir: Path) -> dict:
     """Run the whole benchmark in `workdir` (scratch); returns the result dict with "drift" first."""
-    from core.device import describe, get_device
-    from core.repaint.trainer import edited_images
-    from core.scene.loaders.detect import load_scene
-    from core.teachers.cache import build_feature_store
-    from core.teachers.feature_default import DefaultFeatureTeacher
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.device import describe, get_device
+    from repaint_nerf.core.repaint.trainer import edited_images
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.teachers.cache import build_feature_store
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     log = opts.log
     device = get_device(opts.device)
     root = Path(opts.scene) if opts.scene else None
     if root is None:
-        from core.synth.generate import make_scene
+        from repaint_nerf.core.synth.generate import make_scene
 
         root = make_scene(opts.preset, workdir / "scene", size=opts.size, views=opts.views,
                           test_views=opts.test_views, seed=opts.seed)
@@ -193,8 +193,8 @@ def measure(opts: EditBenchOptions, workdir: Path) -> dict:
     grid_state = s1.grid.state_dict()
 
     def make():
-        from core.render.occupancy import grid_for_field
-        from core.train.stage1 import make_field
+        from repaint_nerf.core.render.occupancy import grid_for_field
+        from repaint_nerf.core.train.stage1 import make_field
 
         f, _ = make_field(s1.field_cfg, device)
         f.load_state_dict(field_state)

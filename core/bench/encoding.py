@@ -13,7 +13,7 @@ IMPLS = ("reference", "vectorized", "indexed", "compiled")
 
 
 def _time(fn, repeats: int) -> float:
-    from core.device import synchronize
+    from repaint_nerf.core.device import synchronize
 
     fn()  # warm-up (and compile)
     synchronize()
@@ -30,7 +30,7 @@ def time_case(impl: str, spec, n: int, repeats: int, device) -> dict:
     """Median seconds and points/s of forward and forward+backward for one implementation and shape."""
     import torch
 
-    from core.field.encoding import encoder_fn
+    from repaint_nerf.core.field.encoding import encoder_fn
 
     fn = encoder_fn(impl)
     gen = torch.Generator(device="cpu").manual_seed(0)
@@ -55,7 +55,7 @@ def time_field(cfg, n: int, repeats: int, device, outputs: tuple) -> dict:
     """Median seconds of one training-style step (forward of `outputs`, sum, backward) on n points."""
     import torch
 
-    from core.field.field import NGPField
+    from repaint_nerf.core.field.field import NGPField
 
     field = NGPField(cfg).to(device)
     gen = torch.Generator(device="cpu").manual_seed(0)
@@ -76,7 +76,7 @@ def time_field(cfg, n: int, repeats: int, device, outputs: tuple) -> dict:
 def field_cases(device, feature_dim: int) -> list[tuple[str, object, tuple]]:
     """(name, FieldConfig, outputs) of the feature-head cost comparison (and the CPU default shape against
     instant-ngp's)."""
-    from core.field.field import default_field_config
+    from repaint_nerf.core.field.field import default_field_config
 
     base = default_field_config(device, 128)
     return [("default, no feature head", base, ("rgb",)),

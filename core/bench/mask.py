@@ -26,7 +26,7 @@ FIXED = 0.5  # the old fixed threshold (the paper's alpha as this project shippe
 
 def presets() -> tuple[str, ...]:
     """Every synthetic preset except 'replace' (the demo layout again, with a geometry edit)."""
-    from core.synth.presets import PRESETS
+    from repaint_nerf.core.synth.presets import PRESETS
 
     return tuple(p for p in PRESETS if p != "replace")
 
@@ -34,9 +34,9 @@ def presets() -> tuple[str, ...]:
 def parts_variants() -> dict:
     """The geometry variants measured: the default (what select saves), all parts, none, and all but one
     (each part's gain)."""
-    from core.select.geometry import GeometryParts
+    from repaint_nerf.core.select.geometry import GeometryParts
 
-    from core.select.geometry import DEFAULT_PARTS
+    from repaint_nerf.core.select.geometry import DEFAULT_PARTS
 
     full = GeometryParts()
     out = {"default": DEFAULT_PARTS, "all": full, "none": GeometryParts.none()}
@@ -48,7 +48,7 @@ def parts_variants() -> dict:
 def make_teacher(spec: str | None):
     """The feature teacher named by --teacher: 'default' (or None) or a model path, through the teachers'
     factory (core.teachers.stage1_targets), so every teacher kind it knows works here."""
-    from core.teachers.stage1_targets import FeatureModel, make_feature_teacher
+    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, make_feature_teacher
 
     if not spec or spec == "default":
         return make_feature_teacher(FeatureModel())
@@ -85,7 +85,7 @@ def summarize(results: dict) -> dict:
 
 
 def _read_masks(root: Path, split: str, names: list[str]) -> list[np.ndarray]:
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     out = []
     for n in names:
@@ -105,7 +105,7 @@ def iou(masks: list[np.ndarray], gts: list[np.ndarray]) -> float:
 
 
 def _cat_cameras(a, b):
-    from core.scene.cameras import Cameras
+    from repaint_nerf.core.scene.cameras import Cameras
 
     return Cameras(*(torch.cat([getattr(a, k), getattr(b, k)]) for k in
                      ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
@@ -116,21 +116,21 @@ class Evaluator:
     geometry parts; the patch's own training view joins them (its seeds, its depth edges)."""
 
     def __init__(self, field, grid, train_cams, test_cams):
-        from core.select.masks import render_view_maps
+        from repaint_nerf.core.select.masks import render_view_maps
 
         self.test = [render_view_maps(field, grid, test_cams, i) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
         self._train: dict = {}
 
     def train_maps(self, view: int):
-        from core.select.masks import render_view_maps
+        from repaint_nerf.core.select.masks import render_view_maps
 
         if view not in self._train:
             self._train[view] = render_view_maps(self.field, self.grid, self.train_cams, view)
         return self._train[view]
 
     def selection(self, patch):
-        from core.select.selection import Selection
+        from repaint_nerf.core.select.selection import Selection
 
         sel = Selection()
         sel.add_patch(self.train_maps(patch.view).feature, patch)
@@ -138,13 +138,13 @@ class Evaluator:
 
     def auto_threshold(self, patch) -> float:
         """The automatic threshold of the patch, from its own view (as `select` chooses it)."""
-        from core.select.autothreshold import selection_auto_threshold
+        from repaint_nerf.core.select.autothreshold import selection_auto_threshold
 
         return selection_auto_threshold(self.selection(patch), self.train_maps(patch.view))
 
     def masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: test masks (numpy bool)}, test similarity maps)."""
-        from core.select.masks import shaped_masks
+        from repaint_nerf.core.select.masks import shaped_masks
 
         pm = self.train_maps(patch.view)
         sel = self.selection(patch)
@@ -161,7 +161,7 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
     """The final figures of one field and patch: IoU at the automatic threshold (default geometry parts), at
     the fixed 0.5, at the best of a sweep, without geometry, without each part, and as before this
     change (0.5 and the voxel clean-up only)."""
-    from core.select.geometry import GeometryParts
+    from repaint_nerf.core.select.geometry import GeometryParts
 
     variants = parts_variants()
     auto = ev.auto_threshold(patch)
@@ -190,12 +190,12 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
 def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None) -> tuple[dict, np.ndarray]:
     """Train with (and unless cfg.no_depth_run, without) depth priors, evaluating the masks along the way;
     returns (figures, montage row). `log(str)` hears progress."""
-    from core.bench.teacher import place_patch
-    from core.scene.loaders.detect import load_scene
-    from core.select.query import Patch
-    from core.teachers.cache import build_feature_store
-    from core.teachers.depth_sparse import depth_for_scene
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.teachers.cache import build_feature_store
+    from repaint_nerf.core.teachers.depth_sparse import depth_for_scene
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     log = log or (lambda _msg: None)
     scene = load_scene(root)
@@ -238,7 +238,7 @@ def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None
     if "no_depth" in runs:
         final.update(iou_no_depth=curve[-1]["iou_no_depth"], psnr_no_depth=runs["no_depth"]["psnr"])
     if cfg.all_objects:
-        from core.select.geometry import GeometryParts
+        from repaint_nerf.core.select.geometry import GeometryParts
 
         final["objects"] = {}
         for o in objects:
@@ -267,7 +267,7 @@ def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None
 def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict:
     import dataclasses
 
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     tcfg = TrainConfig(seed=cfg.seed)
     if cfg.rays:
@@ -276,7 +276,7 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
         tcfg.lambda_depth = 0.0
     field_cfg = None
     if cfg.feature_head:  # 'separate' (DFF's own grid + MLP) or 'trunk' (a head on the density trunk)
-        from core.field.field import default_field_config
+        from repaint_nerf.core.field.field import default_field_config
 
         size = max(max(im.shape[:2]) for im in scene.train.images)
         field_cfg = default_field_config(device, size, feature_head=cfg.feature_head)
@@ -308,10 +308,10 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
 def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict:
     """Median ms from a rendered 256x256 feature map and a patch to a mask on screen (query, similarity,
     automatic threshold, threshold): {"total", "auto" (the automatic threshold's share)}."""
-    from core.render.renderer import RenderOptions, render_camera
-    from core.select.autothreshold import patch_auto_threshold
-    from core.select.query import Patch
-    from core.select.selection import Selection
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.select.selection import Selection
 
     cams = trainer.cameras
     scale = size / float(max(int(cams.width[patch.view]), int(cams.height[patch.view])))
@@ -338,7 +338,7 @@ def montage_row(trainer, ev, sims, masks, gts, n: int = 3) -> np.ndarray:
     """Render | similarity | mask | ground truth for `n` test views, side by side (RGB uint8)."""
     import cv2
 
-    from core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     picks = np.linspace(0, len(gts) - 1, min(n, len(gts))).round().astype(int)
     bg = trainer.eval_background()

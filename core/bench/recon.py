@@ -41,7 +41,7 @@ def _encoder_modules(field) -> list:
 
 def breakdown(trainer, steps: int) -> dict:
     """Mean seconds per stage of `steps` profiled training steps, and their fractions of the step time."""
-    from core.device import synchronize
+    from repaint_nerf.core.device import synchronize
 
     enc_time = [0.0]
 
@@ -94,9 +94,9 @@ def render_figures(trainer) -> dict:
     """Time to render one 128x128 test view, and samples per ray with the trained grid and without skipping."""
     import torch
 
-    from core.device import synchronize
-    from core.render.occupancy import grid_for_field
-    from core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.device import synchronize
+    from repaint_nerf.core.render.occupancy import grid_for_field
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     split = trainer.eval_split()
     cams = trainer.scene.field_cameras(split).to(trainer.device)
@@ -155,9 +155,9 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
     (with its ratios, labelled as figures measured elsewhere). `progress(point)` gets each curve point."""
     import torch
 
-    from core.device import describe
-    from core.scene.loaders.detect import load_scene
-    from core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.device import describe
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     scene = load_scene(scene_path, downscale)
     cfg = TrainConfig(seed=seed)

@@ -73,7 +73,7 @@ def build_sd(family: str, device, dtype):
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPTextConfig, CLIPTextModel
 
-    from core.models.sd import assemble
+    from repaint_nerf.core.models.sd import assemble
 
     if family not in FAMILIES:
         raise ValueError(f"unknown family {family!r}; known: {FAMILIES}")
@@ -162,8 +162,8 @@ def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, device) -> dict:
-    from core.device import synchronize
-    from core.models.sd_speed import set_channels_last, unet_dtype
+    from repaint_nerf.core.device import synchronize
+    from repaint_nerf.core.models.sd_speed import set_channels_last, unet_dtype
 
     sd.set_unet_dtype(unet_dtype(opt.unet_precision, device))
     set_channels_last(sd, opt.channels_last)
@@ -209,9 +209,9 @@ def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
     over the baseline, and the cosine between the bf16 and fp32 UNets' guidance gradients. `on_option(result)`
     gets the result so far after each option (a long run's figures survive an interruption).
     """
-    from core.device import describe, get_device, is_cuda
-    from core.errors import UserError
-    from core.repaint.sds import SDSGuidance
+    from repaint_nerf.core.device import describe, get_device, is_cuda
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.repaint.sds import SDSGuidance
 
     names = list(OPTIONS) if not options else options
     unknown = [n for n in names if n not in OPTIONS]

@@ -12,16 +12,16 @@ def bench_one(preset: str, views: int, width: int, height: int, matcher: str, se
     """Render, run SfM, measure: one row of the benchmark."""
     import numpy as np
 
-    from core.sfm.evaluate import pose_errors
-    from core.sfm.run import run_sfm
-    from core.sfm.synthetic import render_photos
+    from repaint_nerf.core.sfm.evaluate import pose_errors
+    from repaint_nerf.core.sfm.run import run_sfm
+    from repaint_nerf.core.sfm.synthetic import render_photos
 
     root = tmp / f"{preset}_{views}"
     truth = render_photos(preset, root / "photos", views, width, height, seed=seed)
     t0 = time.perf_counter()
     rep = run_sfm(root / "photos", root / "ws", matcher=matcher, force=True)
     total = time.perf_counter() - t0
-    from core.scene.loaders.colmap import load_colmap
+    from repaint_nerf.core.scene.loaders.colmap import load_colmap
 
     scene = load_colmap(Path(rep["scene_dir"]))
     originals = rep["names"]

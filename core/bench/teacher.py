@@ -25,9 +25,9 @@ def evaluate_scene(root: Path, cache: Path, object_id: int | None = None, teache
                    threshold: float | None = None) -> tuple[dict, dict]:
     """Quality of `teacher` (default: the built-in one) on one scene folder (train split). Returns (figures,
     maps for a picture: images, sims, gts, view, box, threshold)."""
-    from core.scene.loaders.detect import load_scene
-    from core.teachers.cache import build_feature_store
-    from core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.teachers.cache import build_feature_store
+    from repaint_nerf.core.teachers.feature_default import DEFAULT_THRESHOLD, DefaultFeatureTeacher
 
     threshold = DEFAULT_THRESHOLD if threshold is None else float(threshold)
 
@@ -77,7 +77,7 @@ def evaluate_scene(root: Path, cache: Path, object_id: int | None = None, teache
 
 
 def teacher_input(image: np.ndarray) -> np.ndarray:
-    from core.teachers.base import check_image
+    from repaint_nerf.core.teachers.base import check_image
 
     return check_image(image)
 
@@ -94,7 +94,7 @@ def place_patch(masks: list[np.ndarray], frac: float = 1 / 24) -> tuple[int, tup
             best = (float(dist[y, x]), i, int(y), int(x))
     d, i, y, x = best
     if d < 0:
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         raise UserError("the object is not visible in any training view", hint="choose another --object")
     half = int(max(1, min(round(frac * masks[i].shape[0]), d / 1.5)))

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import UserError
-from core.workspace import atomic
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.workspace import atomic
 
 
 @dataclass
@@ -34,10 +34,10 @@ class CameraPath:
         return len(self.c2w)
 
     def cameras(self, norm, scale: float = 1.0):
-        """core.scene.cameras.Cameras of the frames in field space (norm: the scene's world -> field map)."""
+        """repaint_nerf.core.scene.cameras.Cameras of the frames in field space (norm: the scene's world -> field map)."""
         import torch
 
-        from core.scene.cameras import Cameras
+        from repaint_nerf.core.scene.cameras import Cameras
 
         w, h = max(1, round(self.width * scale)), max(1, round(self.height * scale))
         f = 0.5 * h / np.tan(np.radians(self.fov) / 2)
@@ -90,7 +90,7 @@ def to_json(path: CameraPath, keys: list[dict] | None = None) -> dict:
 
 def save_camera_path(path: CameraPath, file: str | Path, keys: list[dict] | None = None) -> Path:
     """Write the path as camera_path.json (atomically)."""
-    from core.export.common import check_output_file
+    from repaint_nerf.core.export.common import check_output_file
 
     file = check_output_file(file, (".json",), "camera path")
     atomic.write_json(file, to_json(path, keys))

@@ -7,8 +7,8 @@ import os
 from pathlib import Path
 from typing import Callable, Iterator
 
-from core.errors import UserError
-from core.workspace.atomic import atomic_path
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.workspace.atomic import atomic_path
 
 # progress(fraction in [0, 1], what is being done); cancel() -> True stops the export between work items.
 Progress = Callable[[float, str], None]

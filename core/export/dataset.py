@@ -19,10 +19,10 @@ import cv2
 import numpy as np
 import torch
 
-from core.errors import UserError
-from core.export.common import EXPORT_DIR_MODE, Cancel, Progress, check_output_dir, checkpoint
-from core.export.region import saved_masks
-from core.scene.normalize import MARGIN
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import EXPORT_DIR_MODE, Cancel, Progress, check_output_dir, checkpoint
+from repaint_nerf.core.export.region import saved_masks
+from repaint_nerf.core.scene.normalize import MARGIN
 
 
 def _check_target(out: Path) -> None:
@@ -72,7 +72,7 @@ def export_dataset(source, out: str | Path, masks: bool | list = True, cancel: C
                    progress: Progress | None = None) -> dict:
     """Write the dataset folder; `masks`: True = the saved selection's when there is one, False = none, or a list
     of per-view bool masks. Returns facts for the message (path, frames, masks, bytes, seconds)."""
-    from core.render.renderer import render_camera
+    from repaint_nerf.core.render.renderer import render_camera
 
     out = Path(out).expanduser().absolute()
     _check_target(out)

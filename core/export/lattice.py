@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from core.errors import UserError
-from core.export.common import Cancel, Progress, checkpoint
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import Cancel, Progress, checkpoint
 
 CHUNK = 1 << 18  # lattice points per density query
 

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import UserError
-from core.export.common import Cancel, Progress, atomic_output, check_output_file, checkpoint
-from core.export.lattice import density_lattice, field_box, lattice_points
-from core.export.region import saved_masks, selection_region
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import Cancel, Progress, atomic_output, check_output_file, checkpoint
+from repaint_nerf.core.export.lattice import density_lattice, field_box, lattice_points
+from repaint_nerf.core.export.region import saved_masks, selection_region
 
 MESH_SUFFIXES = (".ply", ".obj", ".glb")
 COLOR_OFFSET_VOXELS = 2.0  # the colour ray starts this many lattice spacings outside the vertex
@@ -44,8 +44,8 @@ def default_level(source, views: int = LEVEL_VIEWS) -> float:
     side of the surface (a solid of uniform density has that density at its surface points, and marching cubes
     needs a level below the peak). With no training view or no opaque pixel: the density at which one render
     step is half opaque (ln 2 / step)."""
-    from core.render.occupancy import default_step
-    from core.select.cleanup3d import backproject
+    from repaint_nerf.core.render.occupancy import default_step
+    from repaint_nerf.core.select.cleanup3d import backproject
 
     sigma = []
     for i in source.train_views(views):
@@ -92,7 +92,7 @@ def marching_cubes(volume: np.ndarray, level: float, lo: np.ndarray, hi: np.ndar
 def vertex_colors(source, verts: np.ndarray, normals: np.ndarray, offset: float, cancel: Cancel | None = None,
                   progress: Progress | None = None, span=(0.0, 1.0)) -> np.ndarray:
     """uint8 (V, 3) colours: each vertex seen along its negative normal from `offset` outside (module docstring)."""
-    from core.render.renderer import render_rays
+    from repaint_nerf.core.render.renderer import render_rays
 
     field, dev = source.field, source.device
     opts = source.render_options(("rgb", "opacity"))

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.errors import UserError
-from core.export.common import Cancel, Progress, atomic_output, check_output_file, checkpoint
-from core.export.region import MIN_OPACITY, saved_masks
-from core.select.cleanup3d import backproject
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import Cancel, Progress, atomic_output, check_output_file, checkpoint
+from repaint_nerf.core.export.region import MIN_OPACITY, saved_masks
+from repaint_nerf.core.select.cleanup3d import backproject
 
 POINT_SUFFIXES = (".ply",)
 
@@ -21,7 +21,7 @@ POINT_SUFFIXES = (".ply",)
 def surface_points(source, selection: bool = False, masks=None, max_points: int | None = None, seed: int = 0,
                    cancel: Cancel | None = None, progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(world points (N, 3) float64, colours (N, 3) uint8) from the training views' renders."""
-    from core.render.renderer import render_camera
+    from repaint_nerf.core.render.renderer import render_camera
 
     cams = source.scene.field_cameras("train")
     masks = saved_masks(source, masks) if selection else None

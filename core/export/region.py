@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from core.errors import UserError, WorkspaceError
-from core.export.common import Cancel, Progress, checkpoint
-from core.select.cleanup3d import FOOTPRINT_VOXELS, backproject
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.export.common import Cancel, Progress, checkpoint
+from repaint_nerf.core.select.cleanup3d import FOOTPRINT_VOXELS, backproject
 
 MIN_OPACITY = 0.5  # a pixel whose render is less opaque shows no surface to place
 MAX_CELLS = 96  # region voxels per axis at most (the vote needs several pixels per voxel)
@@ -18,7 +18,7 @@ REGION_VIEWS = 16  # training views that place the selection (evenly spread; eac
 def saved_masks(source, masks=None) -> list[np.ndarray]:
     """The selection's per-view masks (given, else the workspace's saved ones); none or all empty is a UserError."""
     if masks is None:
-        from core.select.masks import load_masks
+        from repaint_nerf.core.select.masks import load_masks
 
         if source.workspace is None:
             raise UserError("nothing is selected", hint="select an object first (repaint-nerf select WS ...)")

@@ -30,7 +30,7 @@ class ExportSource:
 
     def render_options(self, outputs: tuple, background=None):
         """Deterministic render options at the trained sample budget (background None = black, i.e. none)."""
-        from core.render.renderer import RenderOptions
+        from repaint_nerf.core.render.renderer import RenderOptions
 
         bg = None if background is None else torch.as_tensor(background, dtype=torch.float32, device=self.device)
         return RenderOptions(outputs=outputs, background=bg, perturb=False, max_samples=self.max_samples)
@@ -45,7 +45,7 @@ class ExportSource:
     def depth_opacity(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Rendered z-depth and opacity (H, W) of a training view, on the CPU; cached for this export."""
         if view not in self._maps:
-            from core.render.renderer import render_camera
+            from repaint_nerf.core.render.renderer import render_camera
 
             cams = self.scene.field_cameras("train").to(self.device)
             out = render_camera(self.field, self.grid, cams, int(view), self.render_options(("depth", "opacity")))
@@ -55,7 +55,7 @@ class ExportSource:
 
 def open_workspace(path: str | Path, device: str | None = None) -> ExportSource:
     """The current version of a trained workspace (else its stage-1 checkpoint) with its scene."""
-    from core.session import open_trained
+    from repaint_nerf.core.session import open_trained
 
     t = open_trained(path, device)
     return ExportSource(t.field, t.grid, t.scene, t.workspace, t.header.max_samples)

@@ -8,8 +8,8 @@ from typing import Iterable
 
 import numpy as np
 
-from core.errors import UserError
-from core.export.common import atomic_output, check_output_file
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.export.common import atomic_output, check_output_file
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 MP4_QUALITY = 8  # imageio-ffmpeg's 0..10 scale (x264 crf ~ 18): small files, no visible blocking on renders

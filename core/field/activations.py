@@ -35,7 +35,7 @@ ACTIVATIONS = {"trunc_exp": trunc_exp, "softplus": softplus_density}
 
 def density_activation(name: str):
     """The activation called `name` (trunc_exp or softplus)."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if name not in ACTIVATIONS:
         raise UserError(f"unknown density activation '{name}'", hint=f"use one of {sorted(ACTIVATIONS)}")

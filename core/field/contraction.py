@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.scene.normalize import frustum_points
+from repaint_nerf.core.scene.normalize import frustum_points
 
 SCENE_WARPS = {"bounded": None, "unbounded": "contract", "forward": "ndc"}
 CONE = 1.0 / 256.0  # instant-ngp's cone angle for large scenes: a step is at least t/256
@@ -98,7 +98,7 @@ def make_warp(spec: dict | None):
     """The warp object for a spec (None for bounded scenes)."""
     if not spec:
         return None
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if spec.get("kind") == "contract":
         return ContractWarp()

@@ -18,7 +18,7 @@ def sh_dim(degree: int) -> int:
 
 def sh_encode(d: torch.Tensor, degree: int = 4) -> torch.Tensor:
     """Directions (N, 3) (normalised here) -> (N, degree^2) real SH values; degree in 1..4."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if not 1 <= degree <= 4:
         raise UserError(f"spherical-harmonics degree {degree} is not supported", hint="use a degree from 1 to 4")

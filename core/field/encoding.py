@@ -11,10 +11,10 @@ from typing import Callable
 
 import torch
 
-from core.field.hashgrid import GridSpec, encode_reference
-from core.field.hashgrid_fast import compile_enabled, compiled_encoder, encode_indexed, encode_vectorized
-from core.field.hashgrid_native import encode_native
-from core.field.hashgrid_native import usable as native_usable
+from repaint_nerf.core.field.hashgrid import GridSpec, encode_reference
+from repaint_nerf.core.field.hashgrid_fast import compile_enabled, compiled_encoder, encode_indexed, encode_vectorized
+from repaint_nerf.core.field.hashgrid_native import encode_native
+from repaint_nerf.core.field.hashgrid_native import usable as native_usable
 
 EncodeFn = Callable[[torch.Tensor, torch.Tensor, GridSpec], torch.Tensor]
 
@@ -31,7 +31,7 @@ class AutoEncoder:
 
 def encoder_fn(impl: str = "auto", compile: bool = True) -> EncodeFn:
     """The encode function for `impl` in {auto, reference, vectorized, indexed, compiled, native}."""
-    from core.errors import UserError
+    from repaint_nerf.core.errors import UserError
 
     if impl == "auto":
         return AutoEncoder(encoder_fn("compiled" if compile_enabled(compile) else "indexed", compile))

@@ -12,11 +12,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from core.field.activations import density_activation
-from core.field.contraction import make_warp
-from core.field.direction import sh_dim, sh_encode
-from core.field.encoding import HashGridEncoding
-from core.field.hashgrid import GridSpec
+from repaint_nerf.core.field.activations import density_activation
+from repaint_nerf.core.field.contraction import make_warp
+from repaint_nerf.core.field.direction import sh_dim, sh_encode
+from repaint_nerf.core.field.encoding import HashGridEncoding
+from repaint_nerf.core.field.hashgrid import GridSpec
 
 OUTPUTS = ("sigma", "rgb", "feature")
 
@@ -91,7 +91,7 @@ class NGPField(nn.Module):
 
     def __init__(self, cfg: FieldConfig):
         super().__init__()
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         if cfg.feature_head not in ("separate", "trunk"):
             raise UserError(f"unknown feature head '{cfg.feature_head}'", hint="use 'separate' or 'trunk'")
@@ -135,7 +135,7 @@ class NGPField(nn.Module):
 
     def forward(self, x: Tensor, d: Tensor | None = None, outputs=("rgb",)) -> dict[str, Tensor]:
         """Evaluate at points x (N, 3) seen along directions d (N, 3): 'sigma' always, 'rgb'/'feature' when asked."""
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         unknown = set(outputs) - set(OUTPUTS)
         if unknown:
@@ -179,7 +179,7 @@ def default_field_config(device: torch.device | str | None = None, image_size: i
     pixel, 256..2048): finer levels add no detail a 128-px view can show. Reconstruction quality of these
     shapes is for the recon benchmark to confirm. Figures: `repaint-nerf bench encoding`.
     """
-    from core.device import get_device
+    from repaint_nerf.core.device import get_device
 
     dev = torch.device(device) if device is not None else get_device()
     if dev.type == "cuda":

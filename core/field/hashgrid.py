@@ -29,7 +29,7 @@ class GridSpec:
     bound: float = 1.0
 
     def __post_init__(self) -> None:
-        from core.errors import UserError
+        from repaint_nerf.core.errors import UserError
 
         if self.levels < 1 or self.features < 1 or not 1 <= self.log2_table <= 30:
             raise UserError(f"invalid hash-grid shape {self}", hint="levels, features >= 1; log2_table in 1..30")

@@ -14,7 +14,7 @@ import warnings
 
 import torch
 
-from core.field.hashgrid import PRIMES, GridSpec
+from repaint_nerf.core.field.hashgrid import PRIMES, GridSpec
 
 ENV_COMPILE = "REPAINT_NERF_COMPILE"
 

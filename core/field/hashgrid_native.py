@@ -12,9 +12,9 @@ from pathlib import Path
 
 import torch
 
-from core.field.hashgrid import GridSpec
-from core.field.hashgrid_fast import encode_vectorized
-from core.native import NativeLibrary
+from repaint_nerf.core.field.hashgrid import GridSpec
+from repaint_nerf.core.field.hashgrid_fast import encode_vectorized
+from repaint_nerf.core.native import NativeLibrary
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -102,7 +102,7 @@ def usable(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> bool:
 def encode_native(x: torch.Tensor, table: torch.Tensor, spec: GridSpec) -> torch.Tensor:
     """(N, 3) field coords -> (N, L*F) with the native kernel (falls back to the indexed path when unusable)."""
     if not usable(x, table, spec):
-        from core.field.hashgrid_fast import encode_indexed
+        from repaint_nerf.core.field.hashgrid_fast import encode_indexed
 
         return encode_indexed(x, table, spec)
     return _NativeEncode.apply(x.contiguous(), table.contiguous(), spec)

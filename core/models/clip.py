@@ -13,9 +13,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from core.device import get_device
-from core.errors import ModelNotFoundError, UserError
-from core.models.paths import how_to_set
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import ModelNotFoundError, UserError
+from repaint_nerf.core.models.paths import how_to_set
 
 # OpenAI CLIP's normalisation; used when the folder has no preprocessor_config.json.
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import torch
 
-from core.device import get_device
-from core.errors import ModelNotFoundError
-from core.models.frozen import FrozenNet
-from core.models.paths import locate_model, model_type
-from core.models.vision import HALF, IMAGENET_MEAN, IMAGENET_STD, preprocessor_stats, quiet_transformers
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.frozen import FrozenNet
+from repaint_nerf.core.models.paths import locate_model, model_type
+from repaint_nerf.core.models.vision import HALF, IMAGENET_MEAN, IMAGENET_STD, preprocessor_stats, quiet_transformers
 
 METRIC_TYPES = ("zoedepth",)  # model types that predict metric depth, not relative inverse depth
 

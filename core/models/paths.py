@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from core.errors import ModelNotFoundError
+from repaint_nerf.core.errors import ModelNotFoundError
 
 ROOT_ENV = "REPAINT_NERF_MODELS"
 

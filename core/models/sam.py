@@ -8,10 +8,10 @@ from pathlib import Path
 
 import torch
 
-from core.device import get_device
-from core.errors import ModelNotFoundError
-from core.models.paths import locate_model, model_type
-from core.models.vision import quiet_transformers
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.paths import locate_model, model_type
+from repaint_nerf.core.models.vision import quiet_transformers
 
 
 @dataclass

@@ -14,9 +14,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from core.device import get_device, is_cuda
-from core.errors import ModelNotFoundError
-from core.models.paths import how_to_set
+from repaint_nerf.core.device import get_device, is_cuda
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.paths import how_to_set
 
 PREDICTION_TYPES = ("epsilon", "v_prediction")  # what a UNet may predict (core.repaint.sds reads both)
 COMPONENTS = ("unet", "vae", "text_encoder", "tokenizer", "scheduler")
@@ -145,7 +145,7 @@ def _load_single_file(path: Path, dtype: torch.dtype, config: Path | None, famil
     """An original-layout checkpoint with the shipped config of its detected family (or `config`), offline."""
     from diffusers import StableDiffusionPipeline
 
-    from core.models import sd_single_file as sf
+    from repaint_nerf.core.models import sd_single_file as sf
 
     shapes = sf.checkpoint_shapes(path)
     fam = sf.detect_family(shapes, path, family, prediction_type)

@@ -21,9 +21,9 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.errors import ModelNotFoundError
-from core.models.paths import cached_snapshot
-from core.models.sd import PREDICTION_TYPES
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.paths import cached_snapshot
+from repaint_nerf.core.models.sd import PREDICTION_TYPES
 
 CONFIG_ROOT = Path(__file__).parent / "configs"
 TOKENIZER_ENV = "REPAINT_NERF_SD_TOKENIZER"

@@ -8,9 +8,9 @@ import os
 
 import torch
 
-from core.device import is_cuda
-from core.errors import UserError
-from core.models.sd import StableDiffusion
+from repaint_nerf.core.device import is_cuda
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.models.sd import StableDiffusion
 
 UNET_PRECISIONS = ("auto", "fp32", "bf16", "fp16")
 
@@ -49,7 +49,7 @@ def apply_speed_options(sd: StableDiffusion, unet_precision: str = "auto",
     sd.set_unet_dtype(unet_dtype(unet_precision, sd.device))
     set_channels_last(sd, channels_last)
     if tiny_autoencoder:
-        from core.models.taesd import check_compatible, load_tiny_autoencoder
+        from repaint_nerf.core.models.taesd import check_compatible, load_tiny_autoencoder
 
         ae = load_tiny_autoencoder(tiny_autoencoder, sd.device, sd.dtype)
         check_compatible(ae, int(sd.unet.config.in_channels), sd.vae_scale_factor)

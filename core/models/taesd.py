@@ -12,8 +12,8 @@ from pathlib import Path
 
 import torch
 
-from core.errors import ModelNotFoundError, UserError
-from core.models.paths import cached_snapshot
+from repaint_nerf.core.errors import ModelNotFoundError, UserError
+from repaint_nerf.core.models.paths import cached_snapshot
 
 HINT = ("pass a local folder holding a diffusers AutoencoderTiny (config.json + diffusion_pytorch_model.safetensors, "
         "e.g. a download of madebyollin/taesd), or its model id when it is already in the Hugging Face cache")

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import torch
 
-from core.device import get_device
-from core.errors import ModelNotFoundError
-from core.models.frozen import FrozenNet
-from core.models.paths import locate_model, model_type
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.errors import ModelNotFoundError
+from repaint_nerf.core.models.frozen import FrozenNet
+from repaint_nerf.core.models.paths import locate_model, model_type
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -95,7 +95,7 @@ def load_vision_backbone(path: str | os.PathLike, device: torch.device | str | N
     try:
         with quiet_transformers():
             if family == "clip":
-                from core.models.clip import load_clip
+                from repaint_nerf.core.models.clip import load_clip
 
                 clip = load_clip(path, dev, need_tokenizer=False)
                 model, mean, std = clip.model, clip.mean, clip.std
@@ -106,7 +106,7 @@ def load_vision_backbone(path: str | os.PathLike, device: torch.device | str | N
                                  hint="the folder needs config.json and the weights (model.safetensors)") from exc
     model.eval().requires_grad_(False).to(dev)
     if family in ("clip", "clip_vision"):
-        from core.models.clip import CLIP_MEAN, CLIP_STD
+        from repaint_nerf.core.models.clip import CLIP_MEAN, CLIP_STD
 
         mean, std = mean or CLIP_MEAN, std or CLIP_STD
     mean, std, _ = preprocessor_stats(path, mean, std)

@@ -13,9 +13,9 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from core.native import NativeLibrary
-from core.render.occupancy import OccupancyGrid
-from core.render.raymarch import RayPlan, Samples
+from repaint_nerf.core.native import NativeLibrary
+from repaint_nerf.core.render.occupancy import OccupancyGrid
+from repaint_nerf.core.render.raymarch import RayPlan, Samples
 
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:

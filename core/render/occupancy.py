@@ -14,9 +14,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.device import get_device
-from core.render.box import intersect_box
-from core.errors import UserError
+from repaint_nerf.core.device import get_device
+from repaint_nerf.core.render.box import intersect_box
+from repaint_nerf.core.errors import UserError
 
 MIN_OPTICAL_THICKNESS = 0.01  # instant-ngp: a cell is empty when sigma * min_step stays below this
 SEGMENT_SLACK = 1.25  # warped segments bend: the test box reaches 25% past the warped chord

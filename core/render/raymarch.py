@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from core.render.box import intersect_box
-from core.render.occupancy import OccupancyGrid
+from repaint_nerf.core.render.box import intersect_box
+from repaint_nerf.core.render.occupancy import OccupancyGrid
 
 
 @dataclass

@@ -16,14 +16,14 @@ from dataclasses import dataclass, field as dc_field
 import torch
 from torch import Tensor
 
-from core.device import synchronize
-from core.errors import UserError
-from core.render import march_native
-from core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
-from core.render.box import cube
-from core.render.occupancy import OccupancyGrid, default_step
-from core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
-from core.scene.cameras import Cameras
+from repaint_nerf.core.device import synchronize
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.render import march_native
+from repaint_nerf.core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
+from repaint_nerf.core.render.box import cube
+from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
+from repaint_nerf.core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
+from repaint_nerf.core.scene.cameras import Cameras
 
 OUTPUTS = ("rgb", "depth", "opacity", "feature")
 STRATEGIES = ("auto", "filter", "rounds")

@@ -11,17 +11,17 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from core.repaint.guidance import Guidance, GuidanceResult
+    from repaint_nerf.core.repaint.guidance import Guidance, GuidanceResult
 
 __all__ = ["Guidance", "GuidanceResult", "build_guidance"]
 
 
 def __getattr__(name: str):
     if name in ("Guidance", "GuidanceResult"):
-        from core.repaint import guidance
+        from repaint_nerf.core.repaint import guidance
 
         return getattr(guidance, name)
-    raise AttributeError(f"module 'core.repaint' has no attribute {name!r}")
+    raise AttributeError(f"module 'repaint_nerf.core.repaint' has no attribute {name!r}")
 
 
 def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
@@ -37,10 +37,10 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
     `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed, sds_resolution).
     """
     if kind == "sd":
-        from core.models.paths import resolve_model_path
-        from core.models.sd import load_stable_diffusion
-        from core.models.sd_speed import apply_speed_options
-        from core.repaint.sds import SDSGuidance
+        from repaint_nerf.core.models.paths import resolve_model_path
+        from repaint_nerf.core.models.sd import load_stable_diffusion
+        from repaint_nerf.core.models.sd_speed import apply_speed_options
+        from repaint_nerf.core.repaint.sds import SDSGuidance
 
         sd = load_stable_diffusion(resolve_model_path("sd", sd_path, settings), device=device,
                                    cpu_offload=cpu_offload, config=sd_config, family=sd_family,
@@ -48,13 +48,13 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
         apply_speed_options(sd, unet_precision, tiny_autoencoder, channels_last)
         return SDSGuidance(sd, prompt, negative_prompt, **options)
     if kind == "analytic":
-        from core.repaint.analytic import AnalyticGuidance
+        from repaint_nerf.core.repaint.analytic import AnalyticGuidance
 
         if targets is None:
             raise ValueError("analytic guidance needs `targets` (the edited renders of the training views)")
         return AnalyticGuidance(targets, **options)
-    from core.errors import UserError
-    from core.repaint.registry import get
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.repaint.registry import get
 
     get(kind)  # an unknown name: the error lists the backends
     raise UserError(f"the {kind!r} guidance is built from the repaint trainer's views",

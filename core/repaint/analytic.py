@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
+from repaint_nerf.core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
 
 
 def sd_alphas_cumprod(num_train_timesteps: int = 1000, beta_start: float = 0.00085,

@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.models.clip import Clip
+from repaint_nerf.core.models.clip import Clip
 
 
 def clip_preprocess(img: Tensor, size: int, mean, std) -> Tensor:
@@ -43,8 +43,8 @@ class ClipBackgroundLoss:
     def clip(self) -> Clip:
         """The CLIP model, loaded on first use from flag > env var > settings."""
         if self._clip is None:
-            from core.models.clip import load_clip
-            from core.models.paths import resolve_model_path
+            from repaint_nerf.core.models.clip import load_clip
+            from repaint_nerf.core.models.paths import resolve_model_path
 
             self._clip = load_clip(resolve_model_path("clip", self.path, self.settings), device=self.device)
         return self._clip

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import re
 
-from core.errors import UserError
+from repaint_nerf.core.errors import UserError
 
 COLORS: dict[str, tuple[float, float, float]] = {
     "red": (0.85, 0.12, 0.10),

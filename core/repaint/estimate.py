@@ -82,7 +82,7 @@ def _device_kind(device: torch.device | str) -> str:
 def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", tiny_autoencoder: bool = False,
                     sds_resolution: int | None = None) -> tuple[float | None, str]:
     """Stored seconds per SDS step for the device kind and options, scaled by (sds_resolution / 512)^2."""
-    from core.models.sd_speed import unet_dtype
+    from repaint_nerf.core.models.sd_speed import unet_dtype
 
     dev = torch.device(device)
     table = SD_STEP_SECONDS_512.get(_device_kind(dev))
@@ -157,7 +157,7 @@ def estimate_before_start(kind: str, steps: int, width: int, height: int, device
                           resolution: int | None = None, **sd_options) -> Estimate:
     """The estimate for a scene's training image size, at the edit resolution the trainer would pick (stored
     figures only: nothing is timed). `sd_options`: unet_precision, tiny_autoencoder, sds_resolution."""
-    from core.repaint.trainer import default_resolution
+    from repaint_nerf.core.repaint.trainer import default_resolution
 
     dev = torch.device(device)
     res = resolution or default_resolution(width, height, dev)

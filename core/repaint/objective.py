@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from core.repaint.config import UNMASK_REDUCTIONS
+from repaint_nerf.core.repaint.config import UNMASK_REDUCTIONS
 
 
 def unmask_loss(rgb: Tensor, target: Tensor, keep: Tensor, reduction: str = "sum") -> Tensor:

@@ -7,8 +7,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from core.repaint.color_space import lab_to_rgb, linear_to_srgb, luminance, rgb_to_lab, srgb_to_linear
-from core.repaint.target_guidance import TargetGuidance
+from repaint_nerf.core.repaint.color_space import lab_to_rgb, linear_to_srgb, luminance, rgb_to_lab, srgb_to_linear
+from repaint_nerf.core.repaint.target_guidance import TargetGuidance
 
 
 def reference_luminance(images: list[Tensor], masks: list[Tensor], q: float = 0.95) -> float:

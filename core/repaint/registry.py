@@ -10,12 +10,12 @@ import re
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable
 
-from core.errors import UserError
+from repaint_nerf.core.errors import UserError
 
 if TYPE_CHECKING:
-    from core.repaint.config import RepaintConfig
-    from core.repaint.guidance import Guidance
-    from core.repaint.trainer import RepaintTrainer
+    from repaint_nerf.core.repaint.config import RepaintConfig
+    from repaint_nerf.core.repaint.guidance import Guidance
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
 REMOVE_WORDS = re.compile(r"\b(remove|delete|erase|get rid of|take away|without)\b", re.I)
 OFFICIAL_CLIP_WEIGHT = 0.01  # lambda_clip of the official code, which runs the CLIP loss with Stable Diffusion only
@@ -53,16 +53,16 @@ def offline_kind(prompt: str) -> str:
 
 
 def _recolor(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
-    from core.repaint.colors import resolve_color
-    from core.repaint.recolor import RecolorGuidance
+    from repaint_nerf.core.repaint.colors import resolve_color
+    from repaint_nerf.core.repaint.recolor import RecolorGuidance
 
     rgb = resolve_color(t.prompt, inputs.color)
     return RecolorGuidance(t.images, t.masks, rgb, t.cfg.recolor_mode)
 
 
 def _remove(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
-    from core.repaint.region import selection_region
-    from core.repaint.remove import RemoveGuidance
+    from repaint_nerf.core.repaint.region import selection_region
+    from repaint_nerf.core.repaint.remove import RemoveGuidance
 
     region = selection_region(t.cameras, t.masks, t.bound, t.cfg.region_resolution)
     # Inpaint (and leave free of the unmask loss) a rim around the object's soft edges too.
@@ -71,13 +71,13 @@ def _remove(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
 
 
 def _analytic(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
-    from core.repaint.analytic import AnalyticGuidance
+    from repaint_nerf.core.repaint.analytic import AnalyticGuidance
 
     return AnalyticGuidance(t.edited_targets(), seed=t.cfg.seed)
 
 
 def _sd(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
-    from core.repaint import build_guidance
+    from repaint_nerf.core.repaint import build_guidance
 
     settings = t.workspace.settings if t.workspace is not None else None
     return build_guidance("sd", prompt=t.prompt, negative_prompt=inputs.negative_prompt, sd_path=inputs.sd_path,

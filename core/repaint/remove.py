@@ -6,9 +6,9 @@ import math
 import torch
 from torch import Tensor
 
-from core.repaint.inpaint import inpaint
-from core.repaint.region import region_points
-from core.repaint.target_guidance import TargetGuidance
+from repaint_nerf.core.repaint.inpaint import inpaint
+from repaint_nerf.core.repaint.region import region_points
+from repaint_nerf.core.repaint.target_guidance import TargetGuidance
 
 
 class RemoveGuidance(TargetGuidance):

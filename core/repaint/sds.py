@@ -15,10 +15,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.device import synchronize
-from core.errors import UserError
-from core.models.sd import PREDICTION_TYPES, StableDiffusion
-from core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
+from repaint_nerf.core.device import synchronize
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.models.sd import PREDICTION_TYPES, StableDiffusion
+from repaint_nerf.core.repaint.guidance import Guidance, GuidanceResult, TimestepSampler, distillation_loss
 
 
 def noise_from_prediction(pred: Tensor, noisy: Tensor, alpha_bar: Tensor | float, prediction_type: str) -> Tensor:

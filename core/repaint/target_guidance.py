@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from core.repaint.guidance import Guidance, GuidanceResult
+from repaint_nerf.core.repaint.guidance import Guidance, GuidanceResult
 
 
 class TargetGuidance(Guidance):

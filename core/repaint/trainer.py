@@ -25,21 +25,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.device import get_device, is_cuda, synchronize
-from core.errors import UserError
-from core.render.renderer import RenderOptions, render_camera, render_rays
-from core.repaint import registry
-from core.repaint.config import RepaintConfig  # noqa: F401  (defined in config.py; imported from here too)
-from core.repaint.dilate import dilate
-from core.repaint.guidance import as_guidance
-from core.repaint.estimate import Estimate, Progress, estimate_repaint
-from core.repaint.region import mark_region_occupied, selection_region
-from core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss
-from core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
-from core.train.checkpoint import Checkpoint, split_state
-from core.train.health import SpikeDetector
-from core.train.schedule import LRSchedule
-from core.train.stage1 import target_image
+from repaint_nerf.core.device import get_device, is_cuda, synchronize
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera, render_rays
+from repaint_nerf.core.repaint import registry
+from repaint_nerf.core.repaint.config import RepaintConfig  # noqa: F401  (defined in config.py; imported from here too)
+from repaint_nerf.core.repaint.dilate import dilate
+from repaint_nerf.core.repaint.guidance import as_guidance
+from repaint_nerf.core.repaint.estimate import Estimate, Progress, estimate_repaint
+from repaint_nerf.core.repaint.region import mark_region_occupied, selection_region
+from repaint_nerf.core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss
+from repaint_nerf.core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
+from repaint_nerf.core.train.checkpoint import Checkpoint, split_state
+from repaint_nerf.core.train.health import SpikeDetector
+from repaint_nerf.core.train.schedule import LRSchedule
+from repaint_nerf.core.train.stage1 import target_image
 
 CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
 
@@ -157,7 +157,7 @@ class RepaintTrainer:
         if masks is None:
             if self.workspace is None:
                 raise UserError("no selection to repaint", hint="run `repaint-nerf select` first")
-            from core.select.masks import load_masks
+            from repaint_nerf.core.select.masks import load_masks
 
             masks = load_masks(self.workspace.masks_dir)
         if len(masks) != n:
@@ -208,8 +208,8 @@ class RepaintTrainer:
     def _build_clip(self, clip_path):
         if self.cfg.lambda_clip <= 0:
             return None
-        from core.models.paths import resolve_model_path
-        from core.repaint.clip_loss import build_clip_loss
+        from repaint_nerf.core.models.paths import resolve_model_path
+        from repaint_nerf.core.repaint.clip_loss import build_clip_loss
 
         settings = self.workspace.settings if self.workspace is not None else None
         resolve_model_path("clip", clip_path, settings)  # a missing model fails now, not at step 1
@@ -383,7 +383,7 @@ class RepaintTrainer:
     # -- saving ---------------------------------------------------------------------------------------
     def checkpoint(self) -> Checkpoint:
         """The edited field and grid in the stage-1 checkpoint layout (loads with restore_field)."""
-        from core.train.header import EDIT, CheckpointHeader, EditFacts, GridFacts, SceneFacts
+        from repaint_nerf.core.train.header import EDIT, CheckpointHeader, EditFacts, GridFacts, SceneFacts
 
         tensors = {f"field.{k}": v.detach().cpu() for k, v in self.field.state_dict().items()}
         grid_t, grid_rest = split_state(self.grid.state_dict())

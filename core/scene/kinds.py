@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.scene.normalize import axes_centre
-from core.scene.scene import SCENE_KINDS
+from repaint_nerf.core.scene.normalize import axes_centre
+from repaint_nerf.core.scene.scene import SCENE_KINDS
 
 FORWARD_MAX_ANGLE = 40.0  # degrees between any camera's view direction and the mean one
 BEYOND_FRACTION = 0.2  # share of points farther from the centre than the cameras -> unbounded
@@ -65,7 +65,7 @@ def choose_kind(scene, override: str | None = None) -> str:
     """Set and return `scene.kind`: the override when given (validated), else the detected kind."""
     if override is not None:
         if override not in SCENE_KINDS:
-            from core.errors import UserError
+            from repaint_nerf.core.errors import UserError
 
             raise UserError(f"unknown scene kind {override!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")
         scene.kind = override

@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
-from core.scene.cameras import Cameras
-from core.scene.scene import Normalization, Scene
+from repaint_nerf.core.scene.cameras import Cameras
+from repaint_nerf.core.scene.scene import Normalization, Scene
 
 MARGIN = 1.05  # the fitted region fills 1/MARGIN of the cube, leaving a small border
 POINT_PERCENTILES = (1.0, 99.0)

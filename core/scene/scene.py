@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from core.scene.cameras import Cameras
+from repaint_nerf.core.scene.cameras import Cameras
 
 SCENE_KINDS = ("bounded", "forward", "unbounded")
 
@@ -83,7 +83,7 @@ class Scene:
         """The named split; a missing test split falls back to train, which the caller may note."""
         if name in self.splits:
             return self.splits[name]
-        from core.errors import SceneError
+        from repaint_nerf.core.errors import SceneError
 
         raise SceneError(f"this scene has no '{name}' split (it has: {', '.join(self.splits)})", self.root)
 

@@ -131,7 +131,7 @@ def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: 
 
 def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128):
     """`patch_auto_threshold` with the seed pixels given as a bool (H, W) mask; returns the AutoThreshold."""
-    from core.select.geometry import MIN_OPACITY, depth_edges
+    from repaint_nerf.core.select.geometry import MIN_OPACITY, depth_edges
 
     s = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
     seeds = np.asarray(seeds, bool)

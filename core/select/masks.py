@@ -16,10 +16,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.errors import UserError, WorkspaceError
-from core.select.similarity import cosine_similarity
-from core.teachers.feature_default import DEFAULT_THRESHOLD
-from core.workspace import atomic
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.select.similarity import cosine_similarity
+from repaint_nerf.core.teachers.feature_default import DEFAULT_THRESHOLD
+from repaint_nerf.core.workspace import atomic
 
 # DEFAULT_THRESHOLD, alpha of the mask equation, is the one the default teacher's kernel is tuned for
 # (bench mask, demo preset, 600 steps: IoU 0.964 at 0.5, best 0.972 at 0.6; 0.945 at 0.35, 0.717 at 0.9).
@@ -107,7 +107,7 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
     """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer."""
     from dataclasses import replace
 
-    from core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     n = len(cameras)
     if not 0 <= int(view) < n:
@@ -129,7 +129,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     geometry.GeometryParts, default DEFAULT_PARTS) seeded by the selection's positive patches in
     training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
     the final masks."""
-    from core.select.geometry import DEFAULT_PARTS, GeometryParts
+    from repaint_nerf.core.select.geometry import DEFAULT_PARTS, GeometryParts
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
     cache = cache or ViewCache(field, grid, cameras)
@@ -157,9 +157,9 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
                  parts) -> list[np.ndarray]:
     """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
     patches [(view, Patch)]; the one path the CLI, the editor and bench mask share."""
-    from core.select.autothreshold import patch_pixels
-    from core.select.cleanup3d import cleanup_masks
-    from core.select.geometry import geometric_masks
+    from repaint_nerf.core.select.autothreshold import patch_pixels
+    from repaint_nerf.core.select.cleanup3d import cleanup_masks
+    from repaint_nerf.core.select.geometry import geometric_masks
 
     cams = cameras.to("cpu")
     if parts.edges or parts.grow or parts.holes:

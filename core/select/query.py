@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.errors import UserError
+from repaint_nerf.core.errors import UserError
 
 
 @dataclass(frozen=True)

@@ -12,10 +12,10 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from core.errors import UserError, WorkspaceError
-from core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
-from core.select.query import Patch, patch_query, text_query
-from core.workspace import atomic
+from repaint_nerf.core.errors import UserError, WorkspaceError
+from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
+from repaint_nerf.core.select.query import Patch, patch_query, text_query
+from repaint_nerf.core.workspace import atomic
 
 FORMAT_VERSION = 1
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.errors import SceneError
-from core.scene.loaders.images import IMAGE_EXTS, exif_orientation, read_image, resize_image
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.loaders.images import IMAGE_EXTS, exif_orientation, read_image, resize_image
 
 MAX_SIDE = 1600  # longest side kept for SfM and training; the paper trains LLFF at 504x378
 MIN_IMAGES = 3

@@ -9,8 +9,8 @@ import contextlib
 from collections.abc import Callable
 from pathlib import Path
 
-from core.colmap import pycolmap
-from core.errors import SceneError, UserError
+from repaint_nerf.core.colmap import pycolmap
+from repaint_nerf.core.errors import SceneError, UserError
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 EXHAUSTIVE_MAX = 60  # above this many photos "auto" matches sequentially (pairs grow as n^2)

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import SceneError
-from core.scene.loaders.colmap import find_model, load_colmap, read_model
-from core.scene.scene import SCENE_KINDS, Scene
-from core.sfm import images as intake
-from core.sfm import judge, pipeline
-from core.sfm.judge import Verdict
-from core.workspace import atomic
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.loaders.colmap import find_model, load_colmap, read_model
+from repaint_nerf.core.scene.scene import SCENE_KINDS, Scene
+from repaint_nerf.core.sfm import images as intake
+from repaint_nerf.core.sfm import judge, pipeline
+from repaint_nerf.core.sfm.judge import Verdict
+from repaint_nerf.core.workspace import atomic
 
 log = logging.getLogger("repaint_nerf.sfm")
 
@@ -38,7 +38,7 @@ def default_workspace(photos_dir: Path) -> Path:
 
 
 def _sfm_dir(workspace_dir: Path) -> Path:
-    from core.workspace.workspace import Workspace
+    from repaint_nerf.core.workspace.workspace import Workspace
 
     return Workspace.open_or_create(workspace_dir).path("sfm")
 
@@ -205,8 +205,8 @@ def sfm_scene(photos_dir: str | Path, workspace_dir: str | Path | None = None, p
     The scene keeps the SfM points (with per-image visibility of the train split, for sparse depth),
     its kind is chosen from the camera layout unless `kind` is given, and `extra['sfm']` holds the report.
     """
-    from core.scene.kinds import detect_kind
-    from core.scene.normalize import normalize_scene
+    from repaint_nerf.core.scene.kinds import detect_kind
+    from repaint_nerf.core.scene.normalize import normalize_scene
 
     if kind is not None and kind not in SCENE_KINDS:
         raise SceneError(f"unknown scene kind {kind!r}", hint=f"use one of {', '.join(SCENE_KINDS)}")

@@ -11,9 +11,9 @@ import numpy as np
 
 from dataclasses import replace
 
-from core.synth.presets import build_spec
-from core.synth.raster import Rasterizer
-from core.synth.writer import write_png
+from repaint_nerf.core.synth.presets import build_spec
+from repaint_nerf.core.synth.raster import Rasterizer
+from repaint_nerf.core.synth.writer import write_png
 
 
 def render_photos(preset: str, out: Path, views: int = 20, width: int = 400, height: int = 300,

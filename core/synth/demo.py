@@ -7,7 +7,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from core.synth.generate import GENERATOR_VERSION, make_scene
+from repaint_nerf.core.synth.generate import GENERATOR_VERSION, make_scene
 
 ENV_CACHE = "REPAINT_NERF_CACHE"
 DEMO_VIEWS = 100

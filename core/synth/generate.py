@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import UserError
-from core.synth.presets import PRESETS, SceneObject, SceneSpec, build_spec
-from core.synth.raster import Rasterizer, world_bbox
-from core.synth.writer import transforms, write_depth, write_json, write_png
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.synth.presets import PRESETS, SceneObject, SceneSpec, build_spec
+from repaint_nerf.core.synth.raster import Rasterizer, world_bbox
+from repaint_nerf.core.synth.writer import transforms, write_depth, write_json, write_png
 
 GENERATOR = "repaint-nerf synth"
 GENERATOR_VERSION = 1

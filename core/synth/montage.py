@@ -7,8 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.synth.generate import list_presets, make_scene
-from core.synth.writer import write_png
+from repaint_nerf.core.synth.generate import list_presets, make_scene
+from repaint_nerf.core.synth.writer import write_png
 
 _PALETTE = np.array([[255, 255, 255], [150, 150, 150], [230, 25, 75], [60, 180, 75], [255, 225, 25],
                      [0, 130, 200], [245, 130, 48], [145, 30, 180], [70, 240, 240], [240, 50, 230],

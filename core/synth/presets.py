@@ -10,7 +10,7 @@ from typing import Callable
 
 import numpy as np
 
-from core.synth import rigs
+from repaint_nerf.core.synth import rigs
 
 TEXTURES = ("plain", "checker", "stripes", "noise", "wood", "label")
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.synth.meshes import build
-from core.synth.presets import TEXTURES, SceneObject
+from repaint_nerf.core.synth.meshes import build
+from repaint_nerf.core.synth.presets import TEXTURES, SceneObject
 
 SUPERSAMPLE = 3  # odd, so the middle subsample of each block sits on the pixel centre
 

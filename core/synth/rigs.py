@@ -9,7 +9,7 @@ from typing import Callable
 
 import numpy as np
 
-from core.scene.cameras import look_at
+from repaint_nerf.core.scene.cameras import look_at
 
 Rig = Callable[[int, np.random.Generator], np.ndarray]
 _GOLDEN = np.pi * (3.0 - np.sqrt(5.0))

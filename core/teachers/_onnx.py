@@ -10,14 +10,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from core.device import is_cuda
-from core.errors import ModelNotFoundError
+from repaint_nerf.core.device import is_cuda
+from repaint_nerf.core.errors import ModelNotFoundError
 
 
 def resolve_model(path: str | Path | None, env: str, flag: str, what: str) -> Path:
     """The ONNX file from the argument or `env` (a file, a folder holding one, or a cached model id holding
     one; core.models.paths.locate_model); a missing one is a ModelNotFoundError naming both."""
-    from core.models.paths import locate_model
+    from repaint_nerf.core.models.paths import locate_model
 
     raw = path if path not in (None, "") else os.environ.get(env)
     hint = f"pass {flag} PATH.onnx or set {env} to a local .onnx file (nothing is downloaded)"

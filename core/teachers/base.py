@@ -9,7 +9,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from core.errors import UserError
+from repaint_nerf.core.errors import UserError
 
 
 @runtime_checkable

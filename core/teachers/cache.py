@@ -19,10 +19,10 @@ import torch
 from safetensors import SafetensorError
 from safetensors.numpy import load_file, save
 
-from core.errors import WorkspaceError
-from core.teachers.base import FeatureTeacher, check_image
-from core.teachers.codec import PCACodec, sample_codes
-from core.workspace.atomic import write_bytes
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.teachers.base import FeatureTeacher, check_image
+from repaint_nerf.core.teachers.codec import PCACodec, sample_codes
+from repaint_nerf.core.workspace.atomic import write_bytes
 
 FORMAT_VERSION = 1
 

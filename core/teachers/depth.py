@@ -13,8 +13,8 @@ import numpy as np
 import torch
 from safetensors.numpy import load_file, save
 
-from core.errors import WorkspaceError
-from core.workspace.atomic import write_bytes
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.workspace.atomic import write_bytes
 
 
 @dataclass

@@ -7,10 +7,10 @@ import os
 import numpy as np
 import torch
 
-from core.models.depth import DepthModel, load_depth_model
-from core.teachers._onnx import prepare_input, resize_map
-from core.teachers.base import check_image
-from core.teachers.feature_hf import input_hw
+from repaint_nerf.core.models.depth import DepthModel, load_depth_model
+from repaint_nerf.core.teachers._onnx import prepare_input, resize_map
+from repaint_nerf.core.teachers.base import check_image
+from repaint_nerf.core.teachers.feature_hf import input_hw
 
 MAX_SIDE = 518  # default input short side cap (Depth Anything's own size)
 

@@ -8,11 +8,11 @@ from typing import Sequence
 
 import numpy as np
 
-from core.errors import UserError
-from core.teachers._onnx import open_session, prepare_input, resize_map, resolve_model
-from core.teachers.align import align_inverse_depth
-from core.teachers.base import check_image
-from core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.teachers._onnx import open_session, prepare_input, resize_map, resolve_model
+from repaint_nerf.core.teachers.align import align_inverse_depth
+from repaint_nerf.core.teachers.base import check_image
+from repaint_nerf.core.teachers.depth import DenseDepth, DepthPriors, SparseDepth
 
 ENV_DEPTH_MODEL = "REPAINT_NERF_DEPTH_MODEL"
 FLAG = "--depth-model"

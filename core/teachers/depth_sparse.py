@@ -9,8 +9,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from core.scene.cameras import Cameras, opencv_to_opengl
-from core.teachers.depth import DepthPriors, SparseDepth
+from repaint_nerf.core.scene.cameras import Cameras, opencv_to_opengl
+from repaint_nerf.core.teachers.depth import DepthPriors, SparseDepth
 
 
 def project_points(points: np.ndarray, cameras: Cameras, i: int, visible: np.ndarray | None = None,

@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from core.teachers.base import check_image
+from repaint_nerf.core.teachers.base import check_image
 
 
 @dataclass(frozen=True)

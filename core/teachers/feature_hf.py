@@ -15,9 +15,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.models.vision import VisionBackbone, load_vision_backbone
-from core.teachers._onnx import prepare_input, resize_map
-from core.teachers.base import check_image, l2_normalize
+from repaint_nerf.core.models.vision import VisionBackbone, load_vision_backbone
+from repaint_nerf.core.teachers._onnx import prepare_input, resize_map
+from repaint_nerf.core.teachers.base import check_image, l2_normalize
 
 MAX_SIDE = 448  # default input short side cap: DINOv2 configs say 518, which costs ~5x a 224 pass on a CPU
 MIN_GRID = 16   # default input short side floor in patches: a ViT-B/32 CLIP at its 224 px would give 7 only

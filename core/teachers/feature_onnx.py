@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import UserError
-from core.teachers._onnx import open_session, prepare_input, resize_map, resolve_model
-from core.teachers.base import check_image, l2_normalize
+from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.teachers._onnx import open_session, prepare_input, resize_map, resolve_model
+from repaint_nerf.core.teachers.base import check_image, l2_normalize
 
 ENV_FEATURE_MODEL = "REPAINT_NERF_FEATURE_MODEL"
 FLAG = "--feature-model"

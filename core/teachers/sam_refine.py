@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import torch
 
-from core.teachers.base import check_image
+from repaint_nerf.core.teachers.base import check_image
 
 BOX_MARGIN = 0.1     # SAM's mask is kept inside the prompt box grown by this fraction of its size per side
 MIN_AGREEMENT = 0.25  # below this IoU with the field's mask SAM is taken to have missed, and the mask is kept
@@ -94,8 +94,8 @@ def workspace_refiner(ws, images: Sequence[np.ndarray], flag: str | None = None,
     chosen. A model given by the flag is saved in the settings once it loads."""
     from pathlib import Path
 
-    from core.models.paths import ROOT_ENV, model_kind, resolve_model_path
-    from core.models.sam import load_sam
+    from repaint_nerf.core.models.paths import ROOT_ENV, model_kind, resolve_model_path
+    from repaint_nerf.core.models.sam import load_sam
 
     env = os.environ if environ is None else environ
     if flag == OFF:

@@ -15,7 +15,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from core.errors import ModelNotFoundError, UserError, WorkspaceError
+from repaint_nerf.core.errors import ModelNotFoundError, UserError, WorkspaceError
 
 DEPTH_CACHE = "depth_priors.safetensors"
 FEATURE_DIMS = 12
@@ -71,10 +71,10 @@ def check_norm(norm: str) -> str:
 
 def norm_constants(norm: str) -> tuple[tuple, tuple]:
     """(mean, std) of a normalisation: ImageNet's, or CLIP's (core.models.clip) for CLIP-space models."""
-    from core.teachers.feature_onnx import IMAGENET_MEAN, IMAGENET_STD
+    from repaint_nerf.core.teachers.feature_onnx import IMAGENET_MEAN, IMAGENET_STD
 
     if check_norm(norm) == "clip":
-        from core.models.clip import CLIP_MEAN, CLIP_STD
+        from repaint_nerf.core.models.clip import CLIP_MEAN, CLIP_STD
 
         return CLIP_MEAN, CLIP_STD
     return IMAGENET_MEAN, IMAGENET_STD
@@ -108,7 +108,7 @@ _SOURCES = {"flag": "the {flag} flag", "env": "${env} (or $" + ROOT_ENV + ")",
 
 def _locate(kind: str, value: str, source: str) -> tuple[Path, str]:
     """(local file or folder, 'onnx' or config.json's model_type) of a model value (a path or cached id)."""
-    from core.models.paths import locate_model, model_kind, model_type
+    from repaint_nerf.core.models.paths import locate_model, model_kind, model_type
 
     k = model_kind(kind)
     where = _SOURCES.get(source, _SOURCES["flag"]).format(flag=k.flag, env=k.env, setting=k.settings_key)
@@ -121,7 +121,7 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
     """(choice, source): `model` ('default' or a path) > the workspace's saved choice > the environment >
     the default teacher. `input_size` / `norm` override those of the chosen ONNX model. A workspace trained
     before choices were saved keeps the default teacher it was trained with."""
-    from core.teachers.feature_onnx import ENV_FEATURE_MODEL
+    from repaint_nerf.core.teachers.feature_onnx import ENV_FEATURE_MODEL
 
     settings = ws.settings
     if model:
@@ -146,9 +146,9 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
 def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
     """The teacher of a choice (ONNX, or a transformers backbone: DINOv2, CLIP as MaskCLIP, SigLIP); a missing
     or broken model is a ModelNotFoundError naming what to fix."""
-    from core.teachers.feature_default import DefaultFeatureTeacher
-    from core.teachers.feature_hf import HFFeatureTeacher
-    from core.teachers.feature_onnx import OnnxFeatureTeacher
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.teachers.feature_hf import HFFeatureTeacher
+    from repaint_nerf.core.teachers.feature_onnx import OnnxFeatureTeacher
 
     if fm.path is None:
         return DefaultFeatureTeacher()
@@ -178,7 +178,7 @@ def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = Non
                     notes: list | None = None):
     """Teacher feature codes of the training images (cached under the workspace's teachers/); the chosen
     teacher is saved in the settings only once its features are computed."""
-    from core.teachers.cache import build_feature_store
+    from repaint_nerf.core.teachers.cache import build_feature_store
 
     fm, source = choose_feature_model(ws, model, input_size, norm)
     teacher = make_feature_teacher(fm, source)
@@ -196,7 +196,7 @@ def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = Non
 def workspace_codec(scene, ws, teacher):
     """The PCA codec of the workspace's feature cache for `teacher` (rebuilt from the images when the cache
     is gone): what projects a teacher-space query into the field's feature codes."""
-    from core.teachers.cache import build_feature_store, stored_codec
+    from repaint_nerf.core.teachers.cache import build_feature_store, stored_codec
 
     dims = int(ws.settings.get("feature_dims", FEATURE_DIMS))
     codec = stored_codec(scene.train.images, teacher, ws.teachers_dir, dims=dims)
@@ -208,7 +208,7 @@ def workspace_codec(scene, ws, teacher):
 def choose_depth_model(ws, model: str | None = None) -> tuple[str | None, str]:
     """(model path / cached id, or None for sparse only; source): `model` ('none' or a model) > the saved
     choice > the environment. A workspace trained before choices were saved keeps its sparse priors."""
-    from core.teachers.depth_onnx import ENV_DEPTH_MODEL
+    from repaint_nerf.core.teachers.depth_onnx import ENV_DEPTH_MODEL
 
     if model:
         return (None if model == NO_DEPTH_MODEL else str(model)), "flag"
@@ -222,8 +222,8 @@ def choose_depth_model(ws, model: str | None = None) -> tuple[str | None, str]:
 def make_depth_teacher(path: str, source: str = "flag"):
     """The monocular depth teacher of a model (ONNX, or a transformers DPT / Depth Anything); a missing or
     broken model names what to fix."""
-    from core.teachers.depth_hf import HFDepthTeacher
-    from core.teachers.depth_onnx import OnnxDepthTeacher
+    from repaint_nerf.core.teachers.depth_hf import HFDepthTeacher
+    from repaint_nerf.core.teachers.depth_onnx import OnnxDepthTeacher
 
     try:
         located, kind = _locate("depth", path, source)
@@ -254,7 +254,7 @@ def depth_priors(scene, ws, notes: list | None = None, model: str | None = None)
 
 
 def _aligned(teacher, scene, sparse):
-    from core.teachers.depth_onnx import aligned_monocular_depth
+    from repaint_nerf.core.teachers.depth_onnx import aligned_monocular_depth
 
     return aligned_monocular_depth(teacher, scene.train.images, sparse)
 
@@ -262,14 +262,14 @@ def _aligned(teacher, scene, sparse):
 def _aligned_cache_name(teacher) -> str:
     """The cache file of one depth model's aligned depth: keyed by the model's config, so another model (or
     the same name with other settings) never reads it."""
-    from core.teachers.cache import teacher_key
+    from repaint_nerf.core.teachers.cache import teacher_key
 
     return f"depth_priors-{teacher_key(teacher)}.safetensors"
 
 
 def sparse_depth_priors(scene, ws, notes: list | None = None):
     """Sparse depth priors, cached; None (with a line in `notes`) when too few matches exist."""
-    from core.teachers.depth_sparse import depth_for_scene
+    from repaint_nerf.core.teachers.depth_sparse import depth_for_scene
 
     try:
         return _cached_priors(scene, ws.teachers_dir / DEPTH_CACHE, lambda: depth_for_scene(scene))
@@ -281,7 +281,7 @@ def sparse_depth_priors(scene, ws, notes: list | None = None):
 
 def _cached_priors(scene, path: Path, compute):
     """Priors read from `path` when it holds one per training image, else computed and saved there."""
-    from core.teachers.depth import DepthPriors
+    from repaint_nerf.core.teachers.depth import DepthPriors
 
     if path.exists():
         try:

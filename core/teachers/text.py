@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import UserError
+from repaint_nerf.core.errors import UserError
 
 HINT = ("text selection needs a CLIP-aligned feature teacher: a CLIP model folder or cached id (trained with "
         "--feature-model; MaskCLIP features), or an LSeg ONNX export (--feature-model) plus the CLIP model of its "
@@ -43,7 +43,7 @@ class TextAlignedTeacher:
 def teacher_feature_dim(teacher) -> int:
     """D of a CLIP-aligned teacher: a MaskCLIP teacher's projection dim, else an ONNX teacher's (1, D, h, w)
     output from the model's declared shape (else one tiny run)."""
-    from core.teachers.feature_onnx import OnnxFeatureTeacher
+    from repaint_nerf.core.teachers.feature_onnx import OnnxFeatureTeacher
 
     if getattr(teacher, "clip", None) is not None:
         return int(teacher.dim)
@@ -65,8 +65,8 @@ def text_teacher(teacher, clip_path: str | Path | None = None, settings: dict | 
     """`teacher` paired with the CLIP model at `clip_path` (else $REPAINT_NERF_CLIP_PATH, the models root or
     the workspace's 'clip_path' setting); the teacher is checked before CLIP is loaded. A MaskCLIP teacher
     is paired with its own CLIP model (no other is looked for)."""
-    from core.models.clip import load_clip
-    from core.models.paths import resolve_model_path
+    from repaint_nerf.core.models.clip import load_clip
+    from repaint_nerf.core.models.paths import resolve_model_path
 
     own = getattr(teacher, "clip", None)
     if own is not None:
@@ -77,7 +77,7 @@ def text_teacher(teacher, clip_path: str | Path | None = None, settings: dict | 
 
 def workspace_text_query(scene, ws, clip_path: str | Path | None = None):
     """(teacher with `encode_text`, codec) of a workspace: what `Selection.add_text` needs to select in it."""
-    from core.teachers.stage1_targets import workspace_codec, workspace_feature_teacher
+    from repaint_nerf.core.teachers.stage1_targets import workspace_codec, workspace_feature_teacher
 
     teacher = text_teacher(workspace_feature_teacher(ws), clip_path, ws.settings)
     return teacher, workspace_codec(scene, ws, teacher.teacher)

@@ -13,9 +13,9 @@ from typing import Any
 
 import torch
 
-from core.errors import WorkspaceError
-from core.train.header import DAMAGED_HINT, FORMAT_VERSION, HEADER_KEY, CheckpointHeader, check_format
-from core.workspace import atomic
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.header import DAMAGED_HINT, FORMAT_VERSION, HEADER_KEY, CheckpointHeader, check_format
+from repaint_nerf.core.workspace import atomic
 
 CHECKPOINT_FORMAT = FORMAT_VERSION  # the version written; older ones are read (core.train.header)
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from core.errors import WorkspaceError
-from core.train.history import TrainingHistory
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.train.history import TrainingHistory
 
 FORMAT_VERSION = 2
 READABLE_FORMATS = (1, 2)
@@ -51,7 +51,7 @@ class SceneFacts:
 
     def normalization(self):
         """The world -> field transform the field was trained in (None when not recorded)."""
-        from core.scene.scene import Normalization
+        from repaint_nerf.core.scene.scene import Normalization
 
         return Normalization.from_dict(self.norm) if self.norm else None
 
@@ -88,7 +88,7 @@ class CheckpointHeader:
 
     def field_cfg(self):
         """The FieldConfig the field was built with (unknown keys from newer versions ignored)."""
-        from core.field.field import FieldConfig
+        from repaint_nerf.core.field.field import FieldConfig
 
         return FieldConfig.from_dict(self.field_config)
 
@@ -96,7 +96,7 @@ class CheckpointHeader:
         """The stage-1 TrainConfig it trained with, or None (an edit, or not recorded)."""
         if not self.train_config:
             return None
-        from core.train.stage1 import TrainConfig  # stage1 writes headers: imported when read
+        from repaint_nerf.core.train.stage1 import TrainConfig  # stage1 writes headers: imported when read
 
         return TrainConfig.from_dict(self.train_config)
 

@@ -20,17 +20,17 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from core.device import get_device, synchronize
-from core.render.occupancy import grid_for_field
-from core.render.renderer import RenderOptions, render_camera, render_rays
-from core.train import losses
-from core.train.adan import grads_finite
-from core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
-from core.train.header import STAGE1, CheckpointHeader, GridFacts, SceneFacts
-from core.train.health import SpikeDetector
-from core.train.history import TrainingHistory
-from core.train.metrics import mse_to_psnr, psnr, ssim
-from core.train.schedule import LRSchedule
+from repaint_nerf.core.device import get_device, synchronize
+from repaint_nerf.core.render.occupancy import grid_for_field
+from repaint_nerf.core.render.renderer import RenderOptions, render_camera, render_rays
+from repaint_nerf.core.train import losses
+from repaint_nerf.core.train.adan import grads_finite
+from repaint_nerf.core.train.checkpoint import Checkpoint, load_optimizer_state, optimizer_state, split_state
+from repaint_nerf.core.train.header import STAGE1, CheckpointHeader, GridFacts, SceneFacts
+from repaint_nerf.core.train.health import SpikeDetector
+from repaint_nerf.core.train.history import TrainingHistory
+from repaint_nerf.core.train.metrics import mse_to_psnr, psnr, ssim
+from repaint_nerf.core.train.schedule import LRSchedule
 
 CHECKPOINT_NAME = "stage1.safetensors"
 # the bounded evaluation (Stage1Trainer.evaluate): its cost is the same at any image size. 8 x 48^2 = 18k rays,
@@ -87,14 +87,14 @@ class TrainConfig:
 
 def default_config(device: torch.device | None = None, image_size: int | None = None):
     """The field package's default config for this device and image size."""
-    from core.field import field as fieldmod
+    from repaint_nerf.core.field import field as fieldmod
 
     return fieldmod.default_field_config(device, image_size or 800)
 
 
 def make_field(field_cfg=None, device: torch.device | None = None, image_size: int | None = None):
     """The field for a config (the default for this device when None)."""
-    from core.field import field as fieldmod
+    from repaint_nerf.core.field import field as fieldmod
 
     field_cfg = field_cfg if field_cfg is not None else default_config(device, image_size)
     return fieldmod.NGPField(field_cfg).to(device), field_cfg
@@ -102,7 +102,7 @@ def make_field(field_cfg=None, device: torch.device | None = None, image_size: i
 
 def warped_config(scene, device: torch.device | None, image_size: int):
     """The default field config with the space warp the scene's kind needs; None for bounded scenes."""
-    from core.field.contraction import warp_spec
+    from repaint_nerf.core.field.contraction import warp_spec
 
     spec = warp_spec(scene)
     return None if spec is None else dataclasses.replace(default_config(device, image_size), warp=spec)
@@ -127,7 +127,7 @@ def sample_budget(image_side: int) -> int:
 
 def field_config_from_dict(d: dict):
     """Rebuild the FieldConfig saved with a checkpoint (unknown keys from newer versions ignored)."""
-    from core.field.field import FieldConfig
+    from repaint_nerf.core.field.field import FieldConfig
 
     return FieldConfig.from_dict(d)
 

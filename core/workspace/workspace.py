@@ -19,8 +19,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from core.errors import WorkspaceError
-from core.workspace import atomic
+from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.workspace import atomic
 
 FORMAT_VERSION = 1
 MARKER = "workspace.json"

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.errors import SceneError
-from core.scene.loaders.common import wanted
-from core.scene.loaders.transforms_json import (frames_of, load_frames, parse_aabb, parse_background,
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.loaders.common import wanted
+from repaint_nerf.core.scene.loaders.transforms_json import (frames_of, load_frames, parse_aabb, parse_background,
                                                 parse_depth_range, parse_kind, read_json)
-from core.scene.scene import Scene
+from repaint_nerf.core.scene.scene import Scene
 
 SPLITS = ("train", "val", "test")
 

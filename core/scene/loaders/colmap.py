@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from core.colmap import pycolmap
-from core.errors import SceneError
-from core.scene.cameras import Cameras, opencv_to_opengl
-from core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
-from core.scene.loaders.images import list_images, read_image
-from core.scene.loaders.undistort import undistort_image, undistorted_camera
-from core.scene.scene import Scene
+from repaint_nerf.core.colmap import pycolmap
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.cameras import Cameras, opencv_to_opengl
+from repaint_nerf.core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from repaint_nerf.core.scene.loaders.images import list_images, read_image
+from repaint_nerf.core.scene.loaders.undistort import undistort_image, undistorted_camera
+from repaint_nerf.core.scene.scene import Scene
 
 MODEL_FILES = ("cameras.bin", "cameras.txt")
 

@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import SceneError, UserError
-from core.scene.cameras import Cameras
-from core.scene.loaders.images import fit_image, read_image
-from core.scene.scene import SceneSplit
+from repaint_nerf.core.errors import SceneError, UserError
+from repaint_nerf.core.scene.cameras import Cameras
+from repaint_nerf.core.scene.loaders.images import fit_image, read_image
+from repaint_nerf.core.scene.scene import SceneSplit
 
 TEST_EVERY = 8  # LLFF convention: images 0, 8, 16, ... are the test split
 # longest image side loaded by default: photos are stored and sampled at the training resolution, and the

@@ -10,16 +10,16 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from core.errors import SceneError, UserError
-from core.scene.loaders.blender import is_blender, load_blender
-from core.scene.loaders.colmap import find_model, load_colmap
-from core.scene.loaders.common import DEFAULT_MAX_SIZE, check_downscale, check_max_size
-from core.scene.loaders.images import list_images
-from core.scene.loaders.llff import load_llff
-from core.scene.loaders.nerfstudio import load_nerfstudio
-from core.scene.kinds import choose_kind
-from core.scene.normalize import normalize_scene
-from core.scene.scene import SCENE_KINDS, Scene
+from repaint_nerf.core.errors import SceneError, UserError
+from repaint_nerf.core.scene.loaders.blender import is_blender, load_blender
+from repaint_nerf.core.scene.loaders.colmap import find_model, load_colmap
+from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE, check_downscale, check_max_size
+from repaint_nerf.core.scene.loaders.images import list_images
+from repaint_nerf.core.scene.loaders.llff import load_llff
+from repaint_nerf.core.scene.loaders.nerfstudio import load_nerfstudio
+from repaint_nerf.core.scene.kinds import choose_kind
+from repaint_nerf.core.scene.normalize import normalize_scene
+from repaint_nerf.core.scene.scene import SCENE_KINDS, Scene
 
 FORMATS = ("blender", "nerfstudio", "llff", "colmap", "photos")
 
@@ -63,9 +63,9 @@ def detect_format(path: str | Path) -> tuple[str, Path]:
 def _sfm_hook():
     """`core.sfm.run.sfm_scene` when that module exists (structure-from-motion on bare photos), else None."""
     try:
-        mod = importlib.import_module("core.sfm.run")
+        mod = importlib.import_module("repaint_nerf.core.sfm.run")
     except ModuleNotFoundError as exc:
-        if exc.name and (exc.name == "core.sfm" or exc.name.startswith("core.sfm.")):
+        if exc.name and (exc.name == "repaint_nerf.core.sfm" or exc.name.startswith("repaint_nerf.core.sfm.")):
             return None
         raise
     return getattr(mod, "sfm_scene", None)

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import SceneError
-from core.scene.cameras import Cameras
-from core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
-from core.scene.loaders.images import list_images
-from core.scene.scene import Scene
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.cameras import Cameras
+from repaint_nerf.core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from repaint_nerf.core.scene.loaders.images import list_images
+from repaint_nerf.core.scene.scene import Scene
 
 
 def llff_to_opengl(poses: np.ndarray) -> np.ndarray:

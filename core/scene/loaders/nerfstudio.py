@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from core.errors import SceneError
-from core.scene.loaders.common import every_eighth_split, wanted
-from core.scene.loaders.transforms_json import frames_of, load_frames, parse_aabb, parse_background, read_json
-from core.scene.scene import Scene
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.loaders.common import every_eighth_split, wanted
+from repaint_nerf.core.scene.loaders.transforms_json import frames_of, load_frames, parse_aabb, parse_background, read_json
+from repaint_nerf.core.scene.scene import Scene
 
 
 def _norm(p: str) -> str:

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.scene.scene import Scene
+from repaint_nerf.core.scene.scene import Scene
 
 
 def _depth_gt(scene: Scene) -> dict:

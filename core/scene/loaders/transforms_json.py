@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import SceneError
-from core.scene.cameras import Cameras
-from core.scene.loaders.common import check_pose, load_split
-from core.scene.loaders.images import IMAGE_EXTS, image_size, read_image
-from core.scene.loaders.undistort import make_camera, needs_undistortion, undistort_image, undistorted_camera
-from core.scene.scene import SceneSplit
+from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.cameras import Cameras
+from repaint_nerf.core.scene.loaders.common import check_pose, load_split
+from repaint_nerf.core.scene.loaders.images import IMAGE_EXTS, image_size, read_image
+from repaint_nerf.core.scene.loaders.undistort import make_camera, needs_undistortion, undistort_image, undistorted_camera
+from repaint_nerf.core.scene.scene import SceneSplit
 
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
@@ -213,7 +213,7 @@ def parse_aabb(meta: dict, path: Path):
 
 def parse_kind(meta: dict, path: Path) -> str | None:
     """The optional `scene_kind` ('bounded', 'forward', 'unbounded'); None when absent (detected at load)."""
-    from core.scene.scene import SCENE_KINDS
+    from repaint_nerf.core.scene.scene import SCENE_KINDS
 
     kind = meta.get("scene_kind")
     if kind is None:

@@ -11,7 +11,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from core.colmap import pycolmap
+from repaint_nerf.core.colmap import pycolmap
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 
