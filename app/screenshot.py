@@ -1,4 +1,4 @@
-"""`python -m app.screenshot --out docs/screenshot.png`: the README's picture of the editor, regenerated.
+"""`python -m repaint_nerf.app.screenshot --out docs/screenshot.png`: the README's picture of the editor, regenerated.
 
 Trains the demo scene headlessly first (so the picture shows a trained field, not fog), opens the editor at a
 common window size under Xvfb when there is no display, drags a patch on the object at the centre of the view
@@ -57,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
             if _select_ms(app, patch) is None:
                 raise RuntimeError("the patch selected nothing within a minute")
             app.state.tool = "navigate"
+            shown = app.frames_shown
             app.worker.refresh()
-            _until(app, lambda: _sharp(app), 300)
+            _until(app, lambda: app.frames_shown > shown and _sharp(app), 300)  # the refreshed view, refined
             for _ in range(3):
                 shot = app.frame(capture=True)
             out = Path(args.out)

@@ -26,9 +26,8 @@ def draw(app) -> None:
     # The threshold is a shader uniform: moving it redraws the mask in this frame, it does not re-render.
     _, s.threshold = imgui.slider_float("Threshold", s.threshold, 0.0, 1.0, "%.3f")
     remember_item(app, "threshold")
-    if s.auto_threshold is not None:
-        imgui.same_line()
-        if imgui.small_button(f"auto {s.auto_threshold:.2f}"):
+    if s.auto_threshold is not None:  # on its own line: beside the slider it ran off a 400-px panel
+        if imgui.small_button(f"Automatic threshold {s.auto_threshold:.2f}"):
             s.threshold = s.auto_threshold
         if imgui.is_item_hovered():
             imgui.set_tooltip("the threshold chosen from this patch's own similarity (where the region grown "
