@@ -212,9 +212,11 @@ class EditorApp:
             elif msg.name in ("select", "select_text"):
                 s.selection_busy = False
                 s.has_selection = True
-                self.viewport.upload_similarity(msg.value)
-                if msg.name == "select":
-                    selection_panel.take_auto_threshold(s, msg.value)
+                if msg.name == "select":  # a PatchSelected: the map and its automatic threshold
+                    self.viewport.upload_similarity(msg.value.similarity)
+                    selection_panel.take_auto_threshold(s, msg.value.auto_threshold)
+                else:
+                    self.viewport.upload_similarity(msg.value)
                 if s.view_mode not in ("similarity", "mask"):
                     s.view_mode = "mask"
             elif msg.name == "masks_for_all_views":

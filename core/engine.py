@@ -47,6 +47,15 @@ def editor_train_config(device: torch.device) -> TrainConfig:
     return TrainConfig(rays_per_batch=1024, grid_resolution=64, max_samples=256, grid_update_spread=True)
 
 
+@dataclasses.dataclass
+class PatchSelected:
+    """What a patch selection gives the view: its similarity map (H, W) and the query's automatic threshold
+    (None for a subtracted patch), both computed on the engine's thread."""
+
+    similarity: np.ndarray
+    auto_threshold: float | None
+
+
 class FeatureUnavailable(UserError):
     """A feature whose optional packages are not installed."""
 
@@ -233,7 +242,7 @@ class Engine:
         self.render(cameras, scale=min(1.0, 256.0 / side), outputs=("feature",))
         return self._feature_cache[1]
 
-    def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> np.ndarray:
+    def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> PatchSelected:
         """Add ('new', 'add') or subtract ('sub') the mean feature of `patch` (x0, y0, x1, y1 in [0, 1]) of this
         view, using the newest rendered feature map of this camera. Returns the view's similarity map."""
         self._need_scene()
@@ -245,11 +254,12 @@ class Engine:
         self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
         self.masks = None
         similarity = _np(self.selection.similarity(feat))
-        if mode != "sub":  # saved with the selection; the editor computes the same value for its slider
+        auto = None
+        if mode != "sub":  # saved with the selection, and the editor's slider starts at it
             from repaint_nerf.core.select.autothreshold import patch_auto_threshold
 
-            self.selection.auto_threshold = patch_auto_threshold(similarity, patch)
-        return similarity
+            auto = self.selection.auto_threshold = patch_auto_threshold(similarity, patch)
+        return PatchSelected(similarity, auto)
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:
         """Start ('new') or extend ('add') the selection with a text query through the workspace's CLIP-aligned

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 import torch
 
+from repaint_nerf.core.engine import PatchSelected
 from repaint_nerf.core.scene.cameras import Cameras, look_at
+from repaint_nerf.core.select.autothreshold import patch_auto_threshold
 
 pytestmark = pytest.mark.gui
 
@@ -103,7 +105,8 @@ class AnalyticEngine:
         mean = feat[int(y0 * h):max(int(y1 * h), int(y0 * h) + 1), int(x0 * w):max(int(x1 * w), int(x0 * w) + 1)]
         mean = mean.reshape(-1, feat.shape[-1]).mean(0)
         self.query = mean if mode == "new" or self.query is None else self.query + (mean if mode == "add" else -mean)
-        return self._sim(feat)
+        sim = self._sim(feat)
+        return PatchSelected(sim, None if mode == "sub" else patch_auto_threshold(sim, patch))
 
     def select_text(self, cameras, text, mode="new", clip_path=None):
         self.text_calls.append((text, mode, clip_path))

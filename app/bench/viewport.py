@@ -21,7 +21,7 @@ def _slider_target(app) -> float:
     replies = [m for _, what, m in app.events if what == "reply:select" and getattr(m, "value", None) is not None]
     if not replies:
         raise RuntimeError("no selection reply to take a similarity map from")
-    sim = np.asarray(replies[-1].value, dtype=np.float64)
+    sim = np.asarray(replies[-1].value.similarity, dtype=np.float64)
     q1, med, q3 = np.quantile(sim, [0.25, 0.5, 0.75])
     target = med if abs(med - app.state.threshold) > 0.02 else max((q1, q3), key=lambda q: abs(q - app.state.threshold))
     return float(np.clip(target, 0.0, 1.0))

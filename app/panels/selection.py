@@ -44,18 +44,15 @@ def draw(app) -> None:
         imgui.text(f"masks for {s.masks_done} views saved")
 
 
-def take_auto_threshold(state, similarity) -> None:
-    """After a patch selection: compute its automatic threshold from the view's similarity map; the slider
-    moves to it for a new selection, and for an added/subtracted patch unless the user moved the slider."""
+def take_auto_threshold(state, auto: float | None) -> None:
+    """After a patch selection: the engine's automatic threshold for it (None for a subtracted patch); the slider
+    moves to it for a new selection, and for an added patch unless the user moved the slider."""
     if state.select_rect is None:
         return
-    from repaint_nerf.core.select.autothreshold import patch_auto_threshold
-
-    rect, mode = state.select_rect
+    _, mode = state.select_rect
     state.select_rect = None
-    if mode == "sub":
+    if mode == "sub" or auto is None:
         return
-    auto = patch_auto_threshold(similarity, rect)
     untouched = state.auto_threshold is None or abs(state.threshold - state.auto_threshold) < 1e-6
     if mode == "new" or untouched:
         state.threshold = auto
