@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
-import numpy as np
 
 import torch
 
@@ -38,8 +37,9 @@ class ExportSource:
 
     def train_views(self, at_most: int) -> list[int]:
         """Up to `at_most` training views spread evenly over the capture (renders cost seconds each on a CPU)."""
-        n = len(self.scene.train) if "train" in self.scene.splits else 0
-        return sorted({int(i) for i in np.linspace(0, n - 1, min(at_most, n)).round()}) if n else []
+        from repaint_nerf.core.train.stage1 import spread_views
+
+        return spread_views(len(self.scene.train) if "train" in self.scene.splits else 0, at_most)
 
     @torch.no_grad()
     def depth_opacity(self, view: int) -> tuple[torch.Tensor, torch.Tensor]:
