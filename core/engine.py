@@ -328,8 +328,9 @@ class Engine:
         the recolour target (else a colour named in the prompt).
         """
         self._need_scene()
-        if OPTIONAL.get(guidance) and self.capabilities()[guidance]:
-            raise FeatureUnavailable(self.capabilities()[guidance])
+        missing = self.capabilities()[guidance] if guidance in OPTIONAL else None
+        if missing:
+            raise FeatureUnavailable(missing)
         if registry.get(guidance).needs_prompt and not prompt.strip():
             raise UserError("the prompt is empty", hint="type what the selected region should become")
         # The viewport re-renders the live field as the preview: no snapshots.

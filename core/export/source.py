@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
-
 import torch
 
 
