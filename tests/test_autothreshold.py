@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -96,16 +97,16 @@ def test_fill_holes_keeps_holes_with_a_barrier():
     assert out[5:8, 5:8].all() and not out[11:15, 11:15].any()
 
 
-def _two_view_scene():
-    """A box of its support's colour just above a ground plane (as a loaf touches its board at one point,
-    its whole silhouette is a depth step), seen by two cameras: depth and ids per view."""
+def _two_view_scene(gap: float = 0.12, eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4))):
+    """A box of its support's colour `gap` above a ground plane (as a loaf touches its board at one point,
+    its whole silhouette is a depth step; at gap 0 it stands on it, and its sides meet the ground in a
+    concave crease with no depth step), seen by cameras at `eyes`: depth and ids per view."""
     h = w = 64
     f = 70.0
-    eyes = [(0.3, -3.0, 1.5), (-1.2, -2.7, 1.4)]
     cams = Cameras.create(np.stack([look_at(e, (0.0, 0.0, 0.2)) for e in eyes]), f, f, w / 2, h / 2, w, h)
     depths, ids = [], []
-    lo, hi = np.array([-0.3, -0.3, 0.12]), np.array([0.3, 0.3, 0.62])
-    for i in range(2):
+    lo, hi = np.array([-0.3, -0.3, gap]), np.array([0.3, 0.3, gap + 0.5])
+    for i in range(len(eyes)):
         o, d, dz = cams.image_rays(i)
         o, d = o.numpy().astype(np.float64), d.numpy().astype(np.float64)
         t_ground = np.where(d[:, 2] < 0, -o[:, 2] / np.minimum(d[:, 2], -1e-9), np.inf)
@@ -140,6 +141,95 @@ def test_mask_stops_at_a_depth_edge():
         assert _iou(m, g) > 0.9, _iou(m, g)
     no_edges = geometric_masks(sims, depths, ops, cams, [(0, seed)], 0.5, GeometryParts(edges=False))
     assert _iou(no_edges[0], gts[0]) < 0.3  # the edges are what stops it
+
+
+@pytest.fixture(scope="module")
+def bread_views(tmp_path_factory):
+    """The bread preset (a loaf on a board of its colour, on a wooden table) in 8 views at 96 px: default-
+    teacher similarity to the automatic patch, ground-truth depth, the loaf's masks and the cameras."""
+    from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.select.query import Patch
+    from repaint_nerf.core.select.selection import Selection
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+
+    import cv2
+
+    root = make_scene("bread", tmp_path_factory.mktemp("bread8"), size=96, views=8, seed=0, test_views=1)
+    scene = load_scene(root, splits=("train",))
+    obj = json.loads((root / "gt" / "objects.json").read_text())["edited_object_id"]
+    stems = [Path(n).stem for n in scene.train.names]
+    gts = [cv2.imread(str(root / "gt" / "train" / f"{s}_mask.png"), cv2.IMREAD_UNCHANGED) == obj for s in stems]
+    depths = [np.load(root / "gt" / "train" / f"{s}_depth.npy").astype(np.float32) for s in stems]
+    teacher = DefaultFeatureTeacher()
+    feats = [torch.from_numpy(teacher(im) * (d > 0)[..., None]) for im, d in zip(scene.train.images, depths)]
+    v, (y0, y1, x0, x1) = place_patch(gts)
+    p = Patch(v, x0, y0, x1, y1)
+    sel = Selection()
+    sel.add_patch(feats[v], p)
+    sims = [sel.similarity(f).numpy() for f in feats]
+    return sims, depths, gts, scene.train.cameras, p  # world units, as the ground-truth depth
+
+
+def test_masks_across_views_stop_at_the_loaf_on_a_board_of_its_colour(bread_views):
+    """Across 8 views, at the patch's automatic threshold: the board and the table pass the threshold in
+    every view, and the geometry (seeds carried between views from the masks' interiors, depth edges,
+    creases, the views' vote) keeps the loaf alone."""
+    sims, depths, gts, cams, p = bread_views
+    ops = [(d > 0).astype(np.float32) for d in depths]
+    t = patch_auto_threshold(sims[p.view], p, depths[p.view], ops[p.view])
+    seed = patch_pixels(sims[p.view].shape, p)
+
+    def iou_all(parts):
+        ms = geometric_masks(sims, depths, ops, cams, [(p.view, seed)], t, parts)
+        return sum(int((m & g).sum()) for m, g in zip(ms, gts)) / sum(int((m | g).sum()) for m, g in zip(ms, gts))
+
+    assert iou_all(GeometryParts.none()) < 0.5
+    assert iou_all(GeometryParts(cleanup3d=False)) > 0.9
+
+
+def test_creases_mark_a_concave_fold_and_not_a_convex_one_or_a_plane():
+    """Against the written rule: a V-shaped valley (two planes meeting at 90 degrees, concave towards the
+    camera) has crease pixels along its fold only; the same fold turned into a ridge, and a tilted plane,
+    have none."""
+    from repaint_nerf.core.select.geometry import creases
+
+    h = w = 40
+    x = np.arange(w, dtype=np.float64)[None, :].repeat(h, 0) + 0.5 - w / 2
+    f = 40.0
+    # two planes through the line x = 0 at depth 4: inverse depth (1 - a |x| / f) / 4 is affine on each side
+    for sign, expect in ((-1, True), (+1, False)):
+        a = 1.0 * sign  # a valley (the sides nearer than the fold) or a ridge (the fold nearest)
+        z = 4.0 / (1.0 - a * np.abs(x) / f)
+        z = z.astype(np.float32)
+        c = creases(z, np.ones((h, w), bool), (f, f, w / 2, h / 2))
+        fold = np.abs(x) < 3
+        if expect:
+            assert c[5:-5][fold[5:-5]].mean() > 0.5 and not c[5:-5][~fold[5:-5]].any()
+        else:
+            assert not c.any()
+    plane = (4.0 / (1.0 - 0.5 * x / f)).astype(np.float32)
+    assert not creases(plane, np.ones((h, w), bool), (f, f, w / 2, h / 2)).any()
+
+
+def test_views_outvote_a_leak_seen_by_one_view():
+    """View 0's mask has the box and a patch of ground; views 1 and 2 see that ground outside their masks,
+    so it is dropped; the box, inside the other views' masks, stays, and with one view there is no vote."""
+    from repaint_nerf.core.select.geometry import vote
+
+    cams, depths, ids = _two_view_scene(eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6)))
+    box = [i == 2 for i in ids]
+    surface = [np.ones(d.shape, bool) for d in depths]
+    leak = np.zeros_like(box[0])
+    ys, xs = np.nonzero(box[0])
+    leak[ys.max() + 3:ys.max() + 8, xs.min():xs.max()] = True  # ground in front of the box
+    assert not (leak & box[0]).any() and leak.sum() > 20
+    out = vote([box[0] | leak, box[1], box[2]], depths, surface, cams)
+    assert not (out[0] & leak).any()
+    assert (out[0] == box[0]).mean() > 0.99 and (out[1] == box[1]).all()
+    alone = vote([box[0] | leak, np.zeros_like(box[1]), np.zeros_like(box[2])], depths, surface, cams)
+    assert (alone[0] == (box[0] | leak)).all()
 
 
 @pytest.fixture(scope="module")
@@ -206,3 +296,25 @@ def test_selection_saves_its_automatic_threshold(tmp_path):
     assert back.auto_threshold == pytest.approx(sel.auto_threshold) and back.threshold == pytest.approx(sel.threshold)
     assert 0.0 < back.auto_threshold < 1.0
     assert (back.mask(feats) == (feats[..., 1] > 0)).all()
+
+
+def test_text_query_threshold_splits_two_modes_and_ignores_empty_space():
+    """A text query has no patch: its threshold splits the similarities of every view's surface pixels
+    (an object near 0.8 among clutter near 0.3: between them), ignores pixels without a surface, and is
+    0.5 on a constant map."""
+    from repaint_nerf.core.select.autothreshold import FALLBACK, text_auto_threshold
+
+    rng = np.random.default_rng(0)
+    sims, surf = [], []
+    for _ in range(3):
+        s = rng.normal(0.3, 0.05, (32, 32))
+        s[8:16, 8:16] = rng.normal(0.8, 0.03, (8, 8))
+        s[:, :4] = 0.99  # empty space (no surface) that happens to score high
+        m = np.ones((32, 32), bool)
+        m[:, :4] = False
+        sims.append(s.astype(np.float32))
+        surf.append(m)
+    t = text_auto_threshold(sims, surf)
+    assert 0.45 < t < 0.7
+    assert all(((s > t) & m).sum() == 64 for s, m in zip(sims, surf))
+    assert text_auto_threshold([np.full((8, 8), 0.7, np.float32)]) == FALLBACK

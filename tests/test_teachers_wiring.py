@@ -267,6 +267,8 @@ def test_select_text_cli_writes_masks_from_the_projected_embedding(onnx_ws, scen
     want = (e - codec.mean.astype(np.float64)) @ codec.basis.astype(np.float64)
     np.testing.assert_allclose(sel.positives[0].numpy(), want, rtol=2e-3, atol=2e-3)  # codes are stored as fp16
     assert sel.texts == ["a red ball"] and sel.patches == [] and sel.positives[0].shape == (12,)
+    # no --threshold: the text query's automatic threshold (Otsu over every view's similarities) is used
+    assert sel.auto_threshold is not None and sel.threshold == sel.auto_threshold
 
 
 def test_select_text_cli_bad_inputs(onnx_ws, models, tmp_path, capsys):

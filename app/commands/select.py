@@ -32,7 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a negative patch (repeatable): pixels closer to it than to every positive are dropped")
     p.add_argument("--threshold", type=float, default=None,
                    help="similarity threshold in [0, 1] (default: chosen automatically from the patch's own "
-                        "similarity and the field's depth edges in its view; a text query uses 0.5)")
+                        "similarity and the field's depth edges in its view; for a text query, Otsu's split of the "
+                        "similarities over every view)")
     p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
     p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
@@ -106,6 +107,13 @@ def run(args: argparse.Namespace) -> int:
         from repaint_nerf.core.teachers.text import workspace_text_query
 
         sel.add_text(args.text, *workspace_text_query(scene, ws, args.clip_path))
+        from repaint_nerf.core.select.autothreshold import text_auto_threshold
+
+        views = [cache.get(i) for i in range(len(cams))]
+        sel.auto_threshold = text_auto_threshold([sel.similarity(m.feature).float().numpy() for m in views],
+                                                 [m.opacity.numpy() > 0.5 for m in views])
+        if threshold is None:
+            sel.threshold = sel.auto_threshold
     else:
         feat = cache.get(args.view).feature
         for p in patches:

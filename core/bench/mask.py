@@ -177,7 +177,7 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
         if name not in parts:
             m, _ = ev.masks(patch, (auto,), v)
             parts[name] = iou(m[auto], gts)
-    before, _ = ev.masks(patch, (FIXED,), GeometryParts(False, False, False, True))
+    before, _ = ev.masks(patch, (FIXED,), replace(GeometryParts.none(), cleanup3d=True))
     return {"iou": by_t[auto], "auto_threshold": auto, "iou_fixed": by_t[FIXED], "fixed_threshold": FIXED,
             "best_iou": by_t[best], "best_threshold": best, "auto_gap": max(0.0, by_t[best] - by_t[auto]),
             "iou_by_threshold": {f"{t:.2f}": by_t[t] for t in THRESHOLDS},

@@ -105,11 +105,17 @@ class Cameras:
 
     def project(self, points: torch.Tensor, i: int):
         """Project world points (P,3) into camera i: (pixel coords (P,2) with centres at +0.5, depth (P,))."""
-        w2c = torch.linalg.inv(self.c2w[i])
-        pc = points @ w2c[:3, :3].T + w2c[:3, 3]
-        z = -pc[:, 2]
-        u = self.fx[i] * pc[:, 0] / z + self.cx[i]
-        v = -self.fy[i] * pc[:, 1] / z + self.cy[i]
+        uv, z = self.project_views(points, torch.tensor([int(i)]))
+        return uv[0], z[0]
+
+    def project_views(self, points: torch.Tensor, views: torch.Tensor):
+        """Project world points (P,3) into each camera of `views` (V,) at once: ((V,P,2) pixels, (V,P) depth)."""
+        views = views.to(self.c2w.device).long()
+        w2c = torch.linalg.inv(self.c2w[views])
+        pc = torch.matmul(points.to(w2c)[None], w2c[:, :3, :3].transpose(1, 2)) + w2c[:, None, :3, 3]
+        z = -pc[..., 2]
+        u = self.fx[views, None] * pc[..., 0] / z + self.cx[views, None]
+        v = -self.fy[views, None] * pc[..., 1] / z + self.cy[views, None]
         return torch.stack([u, v], dim=-1), z
 
 

@@ -165,3 +165,18 @@ def selection_auto_threshold(selection, maps) -> float:
         if p.positive:
             seeds |= patch_pixels(sim.shape, p)
     return patch_auto_threshold_px(sim, seeds, maps.depth, maps.opacity).value
+
+
+def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarray] | None = None) -> float:
+    """The automatic threshold of a text query, which has no patch to grow from: Otsu's split of the
+    similarities of every view's surface pixels (the object's mode against the rest), `FALLBACK` when the
+    values are constant."""
+    from skimage.filters import threshold_otsu
+
+    vals = [np.asarray(s, np.float32)[np.asarray(m, bool)] if surfaces is not None else np.asarray(s, np.float32)
+            for s, m in zip(similarities, surfaces or [None] * len(similarities))]
+    v = np.concatenate([x.reshape(-1) for x in vals]) if vals else np.zeros(0, np.float32)
+    v = v[np.isfinite(v)]
+    if v.size < 2 or float(v.max() - v.min()) < 1e-6:
+        return FALLBACK
+    return float(np.clip(threshold_otsu(v), 0.0, 1.0))

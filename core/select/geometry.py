@@ -1,12 +1,19 @@
 """The field's geometry in a view's mask (issue 15): a 2D teacher sees one brown surface where the field
-knows a loaf standing above a board. Depth discontinuities of the rendered depth become barriers, and a
-view's mask is the part of `similarity > threshold` connected to seed pixels without crossing one.
+knows a loaf standing above a board. Depth discontinuities and concave creases of the rendered depth
+become barriers, and a view's mask is the part of `similarity > threshold` connected to seed pixels
+without crossing one; views then vote on each other's pixels through their surface points.
 
 A barrier pixel is the far side of a depth edge: its inverse depth is below what its neighbours on a
 line predict by more than `DEPTH_EDGE` of its own value. Inverse depth is affine in pixel coordinates
 on any plane, so a table seen at a grazing angle has no edge however fast its depth grows; only the
 background side is marked, so the object keeps its silhouette pixels. Pixels without a surface
 (opacity below 0.5) are barriers too.
+
+A loaf resting on a board has no depth edge where they meet, but the surface bends there the other way
+from any convex object: a concave crease. As in locally convex connected patches (LCCP, Stein et al.
+2014), a crease pixel is one where the normals a few pixels apart turn towards each other by more than
+`CREASE` ((n_b - n_a).(P_b - P_a)/|P_b - P_a| < -CREASE); the band of such pixels is a barrier, and
+after growth each band pixel joins the side of its nearest non-band pixel.
 """
 from __future__ import annotations
 
@@ -18,6 +25,14 @@ import numpy as np
 DEPTH_EDGE = 0.01  # relative inverse-depth jump: a loaf 0.2 above its board at 4 units is ~0.05; a torus 0.1
 # behind a cube ~0.015 (0.02 let the "similar" cube leak into it); planes 0 at any angle
 MIN_OPACITY = 0.5
+HOLE_DEPTH = 0.02  # a torus lying on the floor: its hole is ~2.5-5% deeper than its rim at 4 units
+SPECK = 0.01  # a walled hole under 1% of its mask's area is depth noise, not a hole through the object
+CREASE = 0.25  # normals turning towards each other by ~15 degrees or more (2 sin(7.5 deg) = 0.26); a 90-degree
+# contact line scores ~-1, a plane 0 and a convex object > 0. LCCP's default concavity tolerance is 10 degrees.
+CONTINUOUS = 0.05  # inverse depth changing under 5% a pixel: one surface (a floor at a grazing angle ~1%)
+CREASE_SMOOTH = 0.0
+CREASE_MIN = 2.0
+CREASE_STEP = 2  # pixels each side: the band is ~2 * CREASE_STEP + 1 wide, wide enough to have no diagonal gap
 
 
 def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float = DEPTH_EDGE) -> np.ndarray:
@@ -43,6 +58,75 @@ def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float
     return edge | ~surface
 
 
+def camera_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """Camera-space points (H, W, 3) (x right, y down, z forward) of a z-depth map; pixel centres at +0.5."""
+    z = np.asarray(depth, np.float64)
+    h, w = z.shape
+    u = (np.arange(w, dtype=np.float64)[None, :] + 0.5 - cx) / fx
+    v = (np.arange(h, dtype=np.float64)[:, None] + 0.5 - cy) / fy
+    return np.stack([u * z, v * z, z], -1)
+
+
+def surface_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals (H, W, 3) of camera-space points by central differences, turned to face the camera."""
+    du = np.roll(points, -1, 1) - np.roll(points, 1, 1)
+    dv = np.roll(points, -1, 0) - np.roll(points, 1, 0)
+    n = np.cross(du, dv)
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    n[(n * points).sum(-1) > 0] *= -1.0
+    return n
+
+
+def creases(depth: np.ndarray, surface: np.ndarray, intrinsics: tuple[float, float, float, float],
+            tau: float = CREASE, step: int = CREASE_STEP) -> np.ndarray:
+    """Concave-crease pixels (bool (H, W)) of a z-depth map: where the normals `step` pixels to each side
+    (along a row or a column) turn towards each other by more than `tau` (module docstring)."""
+    z = np.asarray(depth, np.float64)
+    surface = np.asarray(surface, bool) & np.isfinite(z) & (z > 0)
+    z = np.where(surface, z, 1.0)
+    if CREASE_SMOOTH > 0:  # a trained field's depth is rough at the pixel scale; average within the surface
+        wsum = cv2.GaussianBlur(surface.astype(np.float64), (0, 0), CREASE_SMOOTH)
+        z = np.where(surface, cv2.GaussianBlur(z * surface, (0, 0), CREASE_SMOOTH) / np.maximum(wsum, 1e-9), 1.0)
+    pts = camera_points(z, *intrinsics)
+    n = surface_normals(pts)
+    # a normal is only read where the surface is continuous across its stencil: a 2-px pole in front of
+    # the floor has no usable normal, and its outline is a depth edge already
+    w = np.where(surface, 1.0 / np.maximum(pts[..., 2], 1e-9), 0.0)
+    valid = surface.copy()
+    for axis in (0, 1):
+        for sh in (1, -1):
+            valid &= np.roll(surface, sh, axis) & (np.abs(np.roll(w, sh, axis) - w) < CONTINUOUS * w)
+    out = np.zeros(surface.shape, bool)
+    for axis in (0, 1):
+        pa, pb = np.roll(pts, step, axis), np.roll(pts, -step, axis)
+        na, nb = np.roll(n, step, axis), np.roll(n, -step, axis)
+        d = pb - pa
+        turn = ((nb - na) * d).sum(-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-12)
+        ok = valid & np.roll(valid, step, axis) & np.roll(valid, -step, axis)
+        out |= ok & (turn < -tau)
+    b = step + 1  # rolled-in borders compare against the opposite side of the image
+    out[:b], out[-b:], out[:, :b], out[:, -b:] = False, False, False, False
+    if CREASE_MIN > 0:  # a contact line is a line; specks of a rough surface are dropped
+        n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
+        span = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
+        keep = span >= CREASE_MIN * (2 * step + 1)
+        keep[0] = False
+        out = keep[lab]
+    return out
+
+
+def join_band(mask: np.ndarray, band: np.ndarray) -> np.ndarray:
+    """`mask` plus the `band` pixels whose nearest non-band pixel is in it: a crease band splits down its
+    middle between the surfaces it separates."""
+    from scipy import ndimage
+
+    band = np.asarray(band, bool)
+    if not band.any():
+        return mask
+    _, (iy, ix) = ndimage.distance_transform_edt(band, return_indices=True)
+    return mask | (band & mask[iy, ix])
+
+
 def grow(candidates: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None) -> np.ndarray:
     """The pixels of `candidates | seeds` (minus `barrier`) 4-connected to a seed pixel (a diagonal
     step would cross a one-pixel barrier line) (bool (H, W))."""
@@ -57,47 +141,70 @@ def grow(candidates: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None =
     return np.isin(lab, keep[keep > 0])
 
 
-def fill_holes(mask: np.ndarray, barrier: np.ndarray | None = None) -> np.ndarray:
-    """`mask` with its holes filled (regions of ~mask not touching the image border), except holes that
-    hold a barrier pixel: a printed label's letters join the can, a torus's hole onto the floor does not."""
+def fill_holes(mask: np.ndarray, barrier: np.ndarray | None = None, depth: np.ndarray | None = None) -> np.ndarray:
+    """`mask` with its holes filled (regions of ~mask not touching the image border), except holes through
+    the object: ones that hold a barrier pixel, are over `SPECK` of the mask's area and, given the z-depth,
+    lie behind the mask around them by more than `HOLE_DEPTH` (relative inverse depth). A printed label's
+    letters join the can, a torus's hole onto the floor does not, and a patch of depth noise on a trained
+    surface (no deeper than its rim) is filled."""
     inv = (~np.asarray(mask, bool)).astype(np.uint8)
-    n, lab = cv2.connectedComponents(inv, connectivity=4)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
     if n <= 1:
         return mask.copy()
     border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
     bad = set(border.tolist())
     if barrier is not None:
-        bad |= set(np.unique(lab[barrier & (inv > 0)]).tolist())
+        walled = np.unique(lab[barrier & (inv > 0)])
+        walled = walled[stats[walled, cv2.CC_STAT_AREA] > SPECK * max(int(np.count_nonzero(mask)), 1)]
+        for k in walled.tolist():
+            if k in bad:
+                continue
+            if depth is None or _hole_behind(lab == k, mask, depth):
+                bad.add(k)
     holes = np.setdiff1d(np.arange(1, n), np.array(sorted(bad), dtype=np.int64))
     return mask | np.isin(lab, holes)
+
+
+def _hole_behind(hole: np.ndarray, mask: np.ndarray, depth: np.ndarray) -> bool:
+    """Whether a hole's surface lies behind the mask's pixels around it (median inverse depths)."""
+    rim = (cv2.dilate(hole.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0) & mask
+    z = np.asarray(depth, np.float64)
+    zh, zr = z[hole & (z > 0)], z[rim & (z > 0)]
+    if not zh.size or not zr.size:
+        return True
+    wh, wr = float(np.median(1.0 / zh)), float(np.median(1.0 / zr))
+    return wr - wh > HOLE_DEPTH * wr
 
 
 @dataclass(frozen=True)
 class GeometryParts:
     """Which geometry parts a mask uses (bench mask measures each): depth-edge barriers, seeded growth
-    with seeds carried between views through the surface points, hole filling, and the voxel 3D
-    clean-up of cleanup3d (applied last)."""
+    with seeds carried between views through the surface points, hole filling, the voxel 3D clean-up of
+    cleanup3d (applied last), concave-crease barriers, and the views' vote on each other's pixels."""
 
     edges: bool = True
     grow: bool = True
     holes: bool = True
     cleanup3d: bool = True
+    creases: bool = True
+    vote: bool = True
 
     @staticmethod
     def none() -> "GeometryParts":
-        return GeometryParts(False, False, False, False)
+        return GeometryParts(False, False, False, False, False, False)
 
     def names(self) -> list[str]:
-        return [k for k in ("edges", "grow", "holes", "cleanup3d") if getattr(self, k)]
+        return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote") if getattr(self, k)]
 
 
 # The default for saved masks: the voxel clean-up only. Edges, growth and holes are measured by bench mask
 # but not on by default: on a trained field's depth (tests/test_selection.py's 32 px scene) they cut the
 # masks to IoU 0.07, and on true depth the growth carries a leak at one contact line to every view.
-DEFAULT_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True)
+DEFAULT_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False)
 
 SEED_DEPTH_TOL = 0.015  # a projected seed point lands on a view's surface when its depth agrees this well (relative)
 MAX_SEED_POINTS = 4000
+SEED_MARGIN = 2  # pixels between a seed point's pixel and the mask's border or a barrier
 
 
 def surface_points(mask: np.ndarray, depth: np.ndarray, cameras, view: int) -> np.ndarray:
@@ -135,44 +242,128 @@ def project_seeds(points: np.ndarray, depth: np.ndarray, cameras, view: int, tol
     return out
 
 
-def _region(sim: np.ndarray, t: float, seeds: np.ndarray, barrier: np.ndarray, parts: GeometryParts) -> np.ndarray:
+def _region(sim: np.ndarray, t: float, seeds: np.ndarray, barrier: np.ndarray, band: np.ndarray | None,
+            depth: np.ndarray, parts: GeometryParts) -> np.ndarray:
     region = grow(sim > t, seeds, barrier)
-    return fill_holes(region, barrier) if parts.holes else region
+    if band is not None:
+        region = join_band(region, band & ((sim > t) | seeds))
+    return fill_holes(region, barrier if band is None else barrier & ~band, depth) if parts.holes else region
+
+
+def _interior(mask: np.ndarray) -> np.ndarray:
+    """`mask` eroded by up to `SEED_MARGIN` pixels: less where that would leave under a quarter of it (a pole
+    two pixels wide keeps its own pixels)."""
+    m = mask.astype(np.uint8)
+    for r in range(SEED_MARGIN, 0, -1):
+        e = cv2.erode(m, np.ones((2 * r + 1,) * 2, np.uint8)) > 0
+        if 4 * int(e.sum()) >= int(m.sum()):
+            return e
+    return mask
+
+
+def _interior_points(masks: list[np.ndarray], barriers: list[np.ndarray], depths: list[np.ndarray], cameras, rng,
+                     limit: int) -> np.ndarray:
+    """Surface points of the masks' pixels up to `SEED_MARGIN` pixels from the mask's border and from any
+    barrier (a silhouette pixel's depth blends two surfaces; a contact-line pixel is where the object
+    and its support meet, so it lands on the support in another view), at most `limit` of them."""
+    pts = np.concatenate([surface_points(_interior(m & ~b), depths[i], cameras, i)
+                          for i, (m, b) in enumerate(zip(masks, barriers))])
+    if len(pts) > limit:
+        pts = pts[rng.choice(len(pts), limit, replace=False)]
+    return pts
+
+
+def vote(masks: list[np.ndarray], depths: list[np.ndarray], surface: list[np.ndarray], cameras,
+         tol: float = SEED_DEPTH_TOL) -> list[np.ndarray]:
+    """The masks without the pixels that the other views outvote: a pixel's surface point, where another
+    view with a mask sees it (projects onto that view's surface at the same depth), counts for it when it
+    lands inside that view's mask and against it otherwise; it is dropped when at least as many views
+    count against as for (and one does).
+    A leak across one view's contact line is outside the other views' masks; a part of the object seen
+    by one view only has no votes and stays."""
+    import torch
+
+    voters = [i for i, m in enumerate(masks) if m.any()]
+    out = []
+    for i, m in enumerate(masks):
+        idx = np.flatnonzero(m)
+        others = [j for j in voters if j != i]
+        if not idx.size or not others:
+            out.append(m)
+            continue
+        pts = surface_points(m, depths[i], cameras, i)
+        uv, z = cameras.project_views(torch.from_numpy(pts), torch.tensor(others))
+        uv, z = uv.cpu().numpy(), z.cpu().numpy()
+        score = np.zeros(len(pts), np.int64)
+        against = np.zeros(len(pts), np.int64)
+        for k, j in enumerate(others):
+            h, w = masks[j].shape
+            ok = (z[k] > 0) & np.isfinite(uv[k]).all(1)
+            u = np.floor(np.where(ok, uv[k, :, 0], -1)).astype(np.int64)
+            v = np.floor(np.where(ok, uv[k, :, 1], -1)).astype(np.int64)
+            ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            uu, vv = np.where(ok, u, 0), np.where(ok, v, 0)
+            seen = ok & surface[j][vv, uu] & (np.abs(depths[j][vv, uu] - z[k]) < tol * np.maximum(z[k], 1e-9))
+            score += np.where(seen, np.where(masks[j][vv, uu], 1, -1), 0)
+            against += seen & ~masks[j][vv, uu]
+        keep = m.copy().reshape(-1)
+        keep[idx[(score <= 0) & (against > 0)]] = False
+        out.append(keep.reshape(m.shape))
+    return out
+
+
+def view_barriers(depths: list[np.ndarray], surface: list[np.ndarray], cameras, parts: GeometryParts
+                  ) -> tuple[list[np.ndarray], list[np.ndarray | None]]:
+    """Per view: the barrier pixels growth may not cross (depth edges, creases, no surface) and the crease
+    band (None without creases), which the grown region later splits with its neighbour."""
+    barriers, bands = [], []
+    for i, (d, ok) in enumerate(zip(depths, surface)):
+        b = depth_edges(d, ok.astype(np.float32)) if parts.edges else ~ok
+        band = None
+        if parts.creases:
+            k = (float(cameras.fx[i]), float(cameras.fy[i]), float(cameras.cx[i]), float(cameras.cy[i]))
+            band = creases(d, ok, k) & ~b
+            b = b | band
+        barriers.append(b)
+        bands.append(band)
+    return barriers, bands
 
 
 def geometric_masks(sims: list[np.ndarray], depths: list[np.ndarray], opacities: list[np.ndarray], cameras,
                     seeds: list[tuple[int, np.ndarray]], threshold: float, parts: GeometryParts = GeometryParts(),
-                    rounds: int = 2, rng_seed: int = 0) -> list[np.ndarray]:
+                    rounds: int = 3, rng_seed: int = 0) -> list[np.ndarray]:
     """Masks (bool (H, W) per view) of `similarity > threshold` shaped by the field's geometry.
 
     `seeds`: (view, bool (H, W) pixels) the user marked on the object (the patch). With `parts.grow`, a
     view's mask is the part of its candidates connected to seed pixels: first the marked views, then,
     `rounds` times, every view seeded by the surface points of all masks so far that it sees (so the
-    far side of an object is reached through the views between). Without it, every candidate is kept.
+    far side of an object is reached through the views between); with `parts.vote` the views vote on
+    each other's pixels after each round (`vote`). Without growth, every candidate is kept.
     """
     n = len(sims)
+    depths = [np.asarray(d, np.float32) for d in depths]
     surface = [np.asarray(o) > MIN_OPACITY for o in opacities]
-    barriers = [depth_edges(d, o) if parts.edges else ~s for d, o, s in zip(depths, opacities, surface)]
+    barriers, bands = view_barriers(depths, surface, cameras, parts)
     if not parts.grow:
-        masks = [(np.asarray(s) > threshold) & ok for s, ok in zip(sims, surface)]
-        return [fill_holes(m, b) for m, b in zip(masks, barriers)] if parts.holes else masks
+        masks = [(np.asarray(s) > threshold) & ok & ~b for s, ok, b in zip(sims, surface, barriers)]
+        masks = [m if band is None else join_band(m, band & (np.asarray(s) > threshold))
+                 for m, band, s in zip(masks, bands, sims)]
+        return [fill_holes(m, b, d) for m, b, d in zip(masks, barriers, depths)] if parts.holes else masks
     seed_px = [np.zeros(np.shape(s), bool) for s in sims]
     for view, px in seeds:
         seed_px[view] |= np.asarray(px, bool) & surface[view]
-    masks = [_region(sims[i], threshold, seed_px[i], barriers[i], parts) if seed_px[i].any()
+    masks = [_region(sims[i], threshold, seed_px[i], barriers[i], bands[i], depths[i], parts) if seed_px[i].any()
              else np.zeros(np.shape(sims[i]), bool) for i in range(n)]
     rng = np.random.default_rng(rng_seed)
     for _ in range(rounds):
-        # interior pixels only: a silhouette pixel's depth blends object and background
-        pts = np.concatenate([surface_points(cv2.erode(m.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0,
-                                             depths[i], cameras, i) for i, m in enumerate(masks)])
-        if len(pts) > MAX_SEED_POINTS:
-            pts = pts[rng.choice(len(pts), MAX_SEED_POINTS, replace=False)]
+        pts = _interior_points(masks, barriers, depths, cameras, rng, MAX_SEED_POINTS)
         new = []
         for i in range(n):
-            s = seed_px[i] | project_seeds(pts, np.asarray(depths[i], np.float32), cameras, i)
+            s = seed_px[i] | project_seeds(pts, depths[i], cameras, i)
             s &= (np.asarray(sims[i]) > threshold) | seed_px[i]
-            new.append(_region(sims[i], threshold, s, barriers[i], parts))
+            new.append(_region(sims[i], threshold, s, barriers[i], bands[i], depths[i], parts))
+        if parts.vote:
+            new = [m | seed_px[i] for i, m in enumerate(vote(new, depths, surface, cameras))]
         if all((a == b).all() for a, b in zip(new, masks)):
             break
         masks = new
