@@ -35,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--evals", type=int, default=12, help="test evaluations along each size's training")
     p.add_argument("--early-seconds", type=float, default=30.0, help="training seconds counted as early steps")
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
+    p.add_argument("--early-max-samples", type=int, default=None,
+                   help="training's early march budget (default: the trainer's; 0 = off, the full budget from step 0)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--in-process", action="store_true",
                    help="run every size in this process (peak RSS is then cumulative)")
@@ -109,7 +111,12 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'size':>5} {'s->25':>7} {'s->30':>7} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
           f"{'eval s':>7} {'train s':>7} {'RSS MB':>7} {'PSNR':>6}", flush=True)
 
+    out = Path(args.json)
+    done: list[dict] = []
+
     def progress(e: dict) -> None:
+        done.append(e)
+        atomic.write_json(out, {"sizes": done, "partial": True})  # a long run keeps what it measured
         print(f"{e['size']:5d} {_fmt(e['seconds_to_25']):>7} {_fmt(e['seconds_to_30']):>7} "
               f"{_fmt(e['steps_per_s_early'], '.2f'):>9} {_fmt(e['steps_per_s'], '.2f'):>6} "
               f"{_fmt(e['samples_per_ray']):>6} {e['render_ms']:9.0f} {e['eval_seconds']:7.2f} "
@@ -117,12 +124,12 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = measure(scene_path, sizes, args.seconds, args.evals, args.seed, args.device, args.rays,
-                         args.early_seconds, isolate=not args.in_process, progress=progress)
+                         args.early_seconds, args.early_max_samples, isolate=not args.in_process,
+                         progress=progress)
     finally:
         if tmp is not None:
             tmp.cleanup()
     result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
-    out = Path(args.json)
     atomic.write_json(out, result)
     png = out.with_suffix(".png")
     plot(result, png)

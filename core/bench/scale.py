@@ -30,8 +30,9 @@ def _mean(xs: list[float]) -> float | None:
     return sum(xs) / len(xs) if xs else None
 
 
-def render_ms(trainer, repeats: int = 2) -> tuple[float, float]:
-    """(median ms, samples per ray) of rendering test view 0 at its full size, as `render` does (no sample cap)."""
+def render_ms(trainer, repeats: int = 1) -> tuple[float, float]:
+    """(median ms, samples per ray) of rendering test view 0 at its full size, as `render` does (no sample cap;
+    no warm-up: the renderer has run in every evaluation before)."""
     import torch
 
     from repaint_nerf.core.device import synchronize
@@ -39,11 +40,10 @@ def render_ms(trainer, repeats: int = 2) -> tuple[float, float]:
 
     cams = trainer.scene.field_cameras(trainer.eval_split()).to(trainer.device)
     opts = RenderOptions(outputs=("rgb",), background=trainer.eval_background(), perturb=False,
-                         t_threshold=trainer.cfg.t_threshold, max_samples=trainer.cfg.max_samples)
+                         t_threshold=trainer.cfg.t_threshold, max_samples=trainer.march_samples)
     trainer.field.eval()
     times, spr = [], 0.0
     with torch.no_grad():
-        render_camera(trainer.field, trainer.grid, cams, 0, opts)  # warm-up
         for _ in range(repeats):
             synchronize(trainer.device)
             t0 = time.perf_counter()
@@ -57,9 +57,10 @@ def render_ms(trainer, repeats: int = 2) -> tuple[float, float]:
 
 def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, seed: int = 0,
                  device: str | None = None, rays: int | None = None,
-                 early_seconds: float = EARLY_SECONDS) -> dict:
+                 early_seconds: float = EARLY_SECONDS, early_max_samples: int | None = None) -> dict:
     """Train the scene loaded at long side `size` for `seconds` (evaluation excluded) and measure it; one
-    entry of the `sizes` list (see the module docstring)."""
+    entry of the `sizes` list (see the module docstring). `early_max_samples` overrides TrainConfig's (0 = the
+    image's sample budget from the first step, as before coarse-to-fine marching)."""
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
@@ -70,6 +71,8 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     cfg = TrainConfig(seed=seed)
     if rays:
         cfg.rays_per_batch = rays
+    if early_max_samples is not None:
+        cfg.early_max_samples = int(early_max_samples)
     trainer = Stage1Trainer(scene, None, cfg, device=device)
     trainer.plan(seconds=seconds)
     early = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
@@ -117,6 +120,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "steps": trainer.step_count,
         "steps_early": early["steps"],
         "max_samples": trainer.cfg.max_samples,
+        "early_max_samples": trainer.cfg.early_max_samples,
         "final_psnr": closing["psnr"],
         "final_ssim": closing["ssim"],
         "load_seconds": load_seconds,
@@ -128,12 +132,13 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
 
 def measure(scene_path: str | Path, sizes: list[int], seconds: float, evals: int = 12, seed: int = 0,
             device: str | None = None, rays: int | None = None, early_seconds: float = EARLY_SECONDS,
-            isolate: bool = True, progress: Callable[[dict], None] | None = None) -> dict:
+            early_max_samples: int | None = None, isolate: bool = True, progress: Callable[[dict], None] | None = None) -> dict:
     """`measure_size` for each size, each in a fresh spawned process when `isolate` (peak RSS per size);
     `progress(entry)` gets each size's entry as it completes."""
     entries = []
     for size in sizes:
-        kw = dict(evals=evals, seed=seed, device=device, rays=rays, early_seconds=early_seconds)
+        kw = dict(evals=evals, seed=seed, device=device, rays=rays, early_seconds=early_seconds,
+                  early_max_samples=early_max_samples)
         if isolate:
             with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
                 entry = pool.submit(measure_size, str(scene_path), int(size), float(seconds), **kw).result()
