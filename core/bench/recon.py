@@ -102,7 +102,7 @@ def render_figures(trainer) -> dict:
     cams = trainer.scene.field_cameras(split).to(trainer.device)
     scale = 128.0 / float(cams.width[0])
     opts = RenderOptions(outputs=("rgb",), background=trainer.eval_background(), perturb=False,
-                         t_threshold=trainer.cfg.t_threshold, max_samples=trainer.cfg.max_samples)
+                         t_threshold=trainer.cfg.t_threshold, max_samples=trainer.march_samples)
     trainer.field.eval()
     times = []
     with torch.no_grad():
@@ -119,7 +119,7 @@ def render_figures(trainer) -> dict:
         out_full = render_camera(trainer.field, full, cams, 0, opts, scale=scale)
         # training-style rendering (no early stop between rounds), for the samples a step actually evaluates
         train_opts = RenderOptions(outputs=("rgb",), background=trainer.eval_background(), strategy="filter",
-                                   t_threshold=trainer.cfg.t_threshold, max_samples=trainer.cfg.max_samples)
+                                   t_threshold=trainer.cfg.t_threshold, max_samples=trainer.march_samples)
         out_train = render_camera(trainer.field, trainer.grid, cams, 0, train_opts, scale=scale)
         out_train_full = render_camera(trainer.field, full, cams, 0, train_opts, scale=scale)
     trainer.field.train()

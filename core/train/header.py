@@ -106,8 +106,15 @@ class CheckpointHeader:
 
     @property
     def max_samples(self) -> int:
-        """The sample budget it was trained with (1024, the renderer's default, when not recorded)."""
-        return int((self.train_config or {}).get("max_samples") or 1024)
+        """The sample budget it was trained with at its step (1024, the renderer's default, when not recorded);
+        early stage-1 steps march coarser (stage1.march_budget)."""
+        tc = self.train_config or {}
+        full = int(tc.get("max_samples") or 1024)
+        if self.kind != STAGE1 or not tc.get("early_max_samples"):
+            return full
+        from repaint_nerf.core.train.stage1 import march_budget
+
+        return march_budget(self.step, full, int(tc["early_max_samples"]), int(tc.get("grid_warmup_steps", 256)))
 
     def to_dict(self) -> dict[str, Any]:
         d = {"format": FORMAT_VERSION, "kind": self.kind, "step": int(self.step),

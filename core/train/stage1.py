@@ -63,6 +63,9 @@ class TrainConfig:
     perturb: bool = True
     t_threshold: float = 1e-4
     max_samples: int = 0  # steps across the cube's diagonal; 0 = auto (see sample_budget)
+    # coarse-to-fine marching (see march_budget): training starts at this many steps across the diagonal and
+    # reaches max_samples at the end of the grid's warm-up (0 = max_samples from the first step)
+    early_max_samples: int = 256
     grid_resolution: int = 0  # occupancy cells per axis; 0 = auto (see grid_resolution_for)
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
@@ -123,6 +126,20 @@ def sample_budget(image_side: int) -> int:
     steps) in 44% of the time.
     """
     return int(min(1024, max(128, 2 * image_side)))
+
+
+def march_budget(step: int, full: int, early: int, ramp_steps: int) -> int:
+    """Steps across the diagonal for training step `step`: `early` at step 0, growing geometrically to `full` at
+    `ramp_steps` (coarse to fine; never above `full`; `early` <= 0 = `full` throughout).
+
+    Why: an untrained field is fog, nothing reaches the transmittance threshold, so every sample of every ray
+    up to the far bound is kept and differentiated; their count is the step count, which grows with the image
+    (sample_budget). Until the occupancy grid has pruned the fog (its warm-up) the field holds no detail a
+    finer step would resolve, so the early steps march at the budget of a 128-px view whatever the image size.
+    """
+    if early <= 0 or early >= full or step >= ramp_steps:
+        return full
+    return int(round(early * (full / early) ** (step / max(1, ramp_steps))))
 
 
 def field_config_from_dict(d: dict):
@@ -356,6 +373,12 @@ class Stage1Trainer:
             batch["depth"] = self.depth[idx]
         return batch
 
+    @property
+    def march_samples(self) -> int:
+        """Steps across the diagonal the field is trained and rendered at now (coarse to fine: march_budget)."""
+        return march_budget(self.step_count, self.cfg.max_samples, self.cfg.early_max_samples,
+                            self.cfg.grid_warmup_steps)
+
     def progress(self) -> float:
         """Fraction of the planned training done (drives the LR schedule)."""
         parts = []
@@ -397,7 +420,7 @@ class Stage1Trainer:
         batch = self.make_batch()
         lap("batch")
         opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
-                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb, profile=prof)
+                             max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof)
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
@@ -530,7 +553,7 @@ class Stage1Trainer:
         cams = self.scene.field_cameras(split).to(self.device)
         bg = self.eval_background()
         opts = RenderOptions(outputs=("rgb",), background=bg, t_threshold=self.cfg.t_threshold,
-                             max_samples=self.cfg.max_samples, perturb=False,
+                             max_samples=self.march_samples, perturb=False,
                              sample_cap=0 if full else EVAL_SAMPLE_CAP)
         self.field.eval()
         n = len(data)

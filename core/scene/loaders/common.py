@@ -103,6 +103,7 @@ def load_split(cameras: Cameras, paths: list[Path], names: list[str], downscale:
     for i, p in enumerate(paths):
         img = reader(i, p) if reader else read_image(p)
         images.append(fit_image(img, int(target.width[i]), int(target.height[i]), p))
+        del img  # else the full-size image lives on while the next one is decoded
     return SceneSplit(target, images, list(names), list(paths))
 
 

@@ -1,0 +1,138 @@
+"""`repaint-nerf bench scale`: the driver of core/bench/scale.py (stage-1 cost against the image size): generates
+the scene when none is given, prints a table, writes the JSON and a plot beside it."""
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+from repaint_nerf.core.bench.scale import TARGETS, measure
+
+HELP = "cost against image size: time to 25/30 dB, steps/s, samples per ray, render ms, evaluation, peak RSS"
+
+
+def _sizes(text: str) -> list[int]:
+    from repaint_nerf.core.errors import UserError
+
+    try:
+        sizes = [int(s) for s in str(text).split(",") if s.strip()]
+    except ValueError:
+        sizes = []
+    if not sizes or any(s < 8 for s in sizes):
+        raise UserError(f"--sizes must be a comma-separated list of pixel sizes >= 8, got {text!r}",
+                        hint="e.g. --sizes 128,256,512")
+    return sizes
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", default=None, help="scene folder in any supported layout (default: generate --preset)")
+    p.add_argument("--preset", default="demo", help="synthetic preset to generate when no --scene is given")
+    p.add_argument("--size", type=int, default=None, help="generated image size (default: the largest of --sizes)")
+    p.add_argument("--views", type=int, default=100, help="generated training views")
+    p.add_argument("--test-views", type=int, default=20, help="generated test views")
+    p.add_argument("--sizes", default="128,256,512", help="long sides to load the scene at (comma-separated)")
+    p.add_argument("--seconds", type=float, default=60.0, help="training budget per size (evaluation not counted)")
+    p.add_argument("--evals", type=int, default=12, help="test evaluations along each size's training")
+    p.add_argument("--early-seconds", type=float, default=30.0, help="training seconds counted as early steps")
+    p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
+    p.add_argument("--early-max-samples", type=int, default=None,
+                   help="training's early march budget (default: the trainer's; 0 = off, the full budget from step 0)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--in-process", action="store_true",
+                   help="run every size in this process (peak RSS is then cumulative)")
+    p.add_argument("--json", required=True, help="output JSON path (the plot goes beside it, .png)")
+    p.add_argument("--device", default=None)
+
+
+def plot(result: dict, path: Path) -> None:
+    """Left: test PSNR against training seconds per size. Right: time to 25/30 dB and steps/s against size."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    for e in result["sizes"]:
+        c = e["curve"]
+        a.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=f"{e['size']} px")
+    for t in TARGETS:
+        a.axhline(t, color="gray", lw=0.8, ls=":")
+    a.set_xlabel("training seconds (evaluation excluded)")
+    a.set_ylabel("test PSNR (dB, bounded evaluation)")
+    a.set_title(result["scene"]["name"])
+    a.grid(alpha=0.3)
+    a.legend(loc="lower right")
+    sizes = [e["size"] for e in result["sizes"]]
+    for key, mark in (("seconds_to_25", "o-"), ("seconds_to_30", "s-")):
+        pts = [(s, e[key]) for s, e in zip(sizes, result["sizes"]) if e[key] is not None]
+        if pts:
+            b.plot(*zip(*pts), mark, label=key.replace("seconds_to_", "s to ") + " dB")
+    b.set_xscale("log", base=2)
+    b.set_xlabel("long side (px)")
+    b.set_ylabel("seconds")
+    b.grid(alpha=0.3)
+    r = b.twinx()
+    r.plot(sizes, [e["steps_per_s_early"] or 0 for e in result["sizes"]], "^--", color="C3", label="steps/s early")
+    r.plot(sizes, [e["steps_per_s"] or 0 for e in result["sizes"]], "v--", color="C4", label="steps/s later")
+    r.set_ylabel("steps/s")
+    h1, l1 = b.get_legend_handles_labels()
+    h2, l2 = r.get_legend_handles_labels()
+    b.legend(h1 + h2, l1 + l2, loc="upper left", fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def _fmt(v, spec: str = ".1f") -> str:
+    return "-" if v is None else format(v, spec)
+
+
+def run(args: argparse.Namespace) -> int:
+    from repaint_nerf.core.errors import UserError
+    from repaint_nerf.core.workspace import atomic
+
+    sizes = _sizes(args.sizes)
+    if not args.seconds > 0:
+        raise UserError(f"--seconds must be positive, got {args.seconds}")
+    if args.evals < 1:
+        raise UserError(f"--evals must be at least 1, got {args.evals}")
+    tmp = None
+    if args.scene:
+        scene_path = Path(args.scene)
+    else:
+        from repaint_nerf.core.synth.generate import make_scene
+
+        size = args.size or max(sizes)
+        tmp = tempfile.TemporaryDirectory(prefix="repaint-nerf-bench-")
+        print(f"generating preset '{args.preset}' ({args.views} views, {size}px) ...")
+        scene_path = make_scene(args.preset, Path(tmp.name) / args.preset, size=size, views=args.views,
+                                seed=args.seed, test_views=args.test_views)
+    print(f"{'size':>5} {'s->25':>7} {'s->30':>7} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
+          f"{'eval s':>7} {'train s':>7} {'RSS MB':>7} {'PSNR':>6}", flush=True)
+
+    out = Path(args.json)
+    done: list[dict] = []
+
+    def progress(e: dict) -> None:
+        done.append(e)
+        atomic.write_json(out, {"sizes": done, "partial": True})  # a long run keeps what it measured
+        print(f"{e['size']:5d} {_fmt(e['seconds_to_25']):>7} {_fmt(e['seconds_to_30']):>7} "
+              f"{_fmt(e['steps_per_s_early'], '.2f'):>9} {_fmt(e['steps_per_s'], '.2f'):>6} "
+              f"{_fmt(e['samples_per_ray']):>6} {e['render_ms']:9.0f} {e['eval_seconds']:7.2f} "
+              f"{e['train_seconds']:7.1f} {e['peak_rss_mb']:7.0f} {e['final_psnr']:6.2f}", flush=True)
+
+    try:
+        result = measure(scene_path, sizes, args.seconds, args.evals, args.seed, args.device, args.rays,
+                         args.early_seconds, args.early_max_samples, isolate=not args.in_process,
+                         progress=progress)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
+    atomic.write_json(out, result)
+    png = out.with_suffix(".png")
+    plot(result, png)
+    print(f"PSNR: {result['psnr_measured']}")
+    print(f"wrote {out} and {png}")
+    return 0

@@ -1,0 +1,160 @@
+"""How stage-1 cost grows with the image size (issue 18 item 4): per size, the scene loaded at that long side is
+trained for a fixed budget, and the time to 25 / 30 dB test PSNR, steps/s early and later, samples per ray,
+the time of one full-view render, the closing evaluation and the peak RSS are measured. Each size runs in a
+fresh process (spawned), so its peak RSS is its own. Returns dicts; the driver is app/bench/scale.py.
+"""
+from __future__ import annotations
+
+import multiprocessing
+import resource
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from repaint_nerf.core.bench.recon import time_to
+
+TARGETS = (25.0, 30.0)
+EARLY_SECONDS = 30.0  # training seconds counted as "early" (an untrained, foggy field)
+PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EVAL_VIEWS test views spread over "
+                "the split, one fixed EVAL_CROP-px square crop each, at most EVAL_SAMPLE_CAP samples per ray), "
+                "run at `evals` evenly spaced points of the training budget; evaluation time is not counted as "
+                "training time; seconds_to_* interpolate linearly between evaluations")
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kilobytes on Linux
+
+
+def _mean(xs: list[float]) -> float | None:
+    return sum(xs) / len(xs) if xs else None
+
+
+def render_ms(trainer, repeats: int = 1) -> tuple[float, float]:
+    """(median ms, samples per ray) of rendering test view 0 at its full size, as `render` does (no sample cap;
+    no warm-up: the renderer has run in every evaluation before)."""
+    import torch
+
+    from repaint_nerf.core.device import synchronize
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+
+    cams = trainer.scene.field_cameras(trainer.eval_split()).to(trainer.device)
+    opts = RenderOptions(outputs=("rgb",), background=trainer.eval_background(), perturb=False,
+                         t_threshold=trainer.cfg.t_threshold, max_samples=trainer.march_samples)
+    trainer.field.eval()
+    times, spr = [], 0.0
+    with torch.no_grad():
+        for _ in range(repeats):
+            synchronize(trainer.device)
+            t0 = time.perf_counter()
+            out = render_camera(trainer.field, trainer.grid, cams, 0, opts)
+            synchronize(trainer.device)
+            times.append(time.perf_counter() - t0)
+            spr = float(out["stats"]["samples_per_ray"])
+    trainer.field.train()
+    return 1000.0 * sorted(times)[len(times) // 2], spr
+
+
+def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, seed: int = 0,
+                 device: str | None = None, rays: int | None = None,
+                 early_seconds: float = EARLY_SECONDS, early_max_samples: int | None = None) -> dict:
+    """Train the scene loaded at long side `size` for `seconds` (evaluation excluded) and measure it; one
+    entry of the `sizes` list (see the module docstring). `early_max_samples` overrides TrainConfig's (0 = the
+    image's sample budget from the first step, as before coarse-to-fine marching)."""
+    from repaint_nerf.core.device import describe
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
+
+    t_load = time.perf_counter()
+    scene = load_scene(scene_path, max_size=int(size))
+    load_seconds = time.perf_counter() - t_load
+    cfg = TrainConfig(seed=seed)
+    if rays:
+        cfg.rays_per_batch = rays
+    if early_max_samples is not None:
+        cfg.early_max_samples = int(early_max_samples)
+    trainer = Stage1Trainer(scene, None, cfg, device=device)
+    trainer.plan(seconds=seconds)
+    early = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
+    late = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
+
+    def on_step(info: dict) -> None:
+        part = early if trainer.train_seconds - info["seconds"] < early_seconds else late
+        part["steps"] += 1
+        part["seconds"] += info["seconds"]
+        part["samples"].append(info.get("samples_per_ray", 0.0))
+        part["candidates"].append(info.get("candidates_per_ray", 0.0))
+
+    eval_total = 0.0
+    ev = trainer.evaluate()
+    eval_total += ev["seconds"]
+    curve = [{"seconds": 0.0, "step": 0, "psnr": ev["psnr"]}]
+    for k in range(1, evals + 1):
+        trainer.train(seconds=seconds * k / evals, callback=on_step)
+        ev = trainer.evaluate()
+        eval_total += ev["seconds"]
+        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]})
+    closing = trainer.evaluate(with_ssim=True)
+    ms, render_spr = render_ms(trainer)
+    h, w = scene.train.images[0].shape[:2]
+    every = early["samples"] + late["samples"]
+    return {
+        "size": int(size),
+        "image_size": [int(h), int(w)],
+        "train_views": len(scene.train),
+        "seconds_to_25": time_to(curve, TARGETS[0]),
+        "seconds_to_30": time_to(curve, TARGETS[1]),
+        "steps_per_s_early": early["steps"] / early["seconds"] if early["seconds"] > 0 else None,
+        "steps_per_s": late["steps"] / late["seconds"] if late["seconds"] > 0 else None,
+        "steps_per_s_overall": trainer.step_count / max(trainer.train_seconds, 1e-9),
+        "samples_per_ray": _mean(every),
+        "samples_per_ray_early": _mean(early["samples"]),
+        "density_samples_per_ray": _mean(early["candidates"] + late["candidates"]),
+        "density_samples_per_ray_early": _mean(early["candidates"]),
+        "render_ms": ms,
+        "render_samples_per_ray": render_spr,
+        "eval_seconds": closing["seconds"],
+        "eval_fraction_of_training": closing["seconds"] / max(trainer.train_seconds, 1e-9),
+        "eval_seconds_along_training": eval_total,
+        "train_seconds": trainer.train_seconds,
+        "steps": trainer.step_count,
+        "steps_early": early["steps"],
+        "max_samples": trainer.cfg.max_samples,
+        "early_max_samples": trainer.cfg.early_max_samples,
+        "final_psnr": closing["psnr"],
+        "final_ssim": closing["ssim"],
+        "load_seconds": load_seconds,
+        "peak_rss_mb": _peak_rss_mb(),
+        "curve": curve,
+        "device": describe(trainer.device),
+    }
+
+
+def measure(scene_path: str | Path, sizes: list[int], seconds: float, evals: int = 12, seed: int = 0,
+            device: str | None = None, rays: int | None = None, early_seconds: float = EARLY_SECONDS,
+            early_max_samples: int | None = None, isolate: bool = True, progress: Callable[[dict], None] | None = None) -> dict:
+    """`measure_size` for each size, each in a fresh spawned process when `isolate` (peak RSS per size);
+    `progress(entry)` gets each size's entry as it completes."""
+    entries = []
+    for size in sizes:
+        kw = dict(evals=evals, seed=seed, device=device, rays=rays, early_seconds=early_seconds,
+                  early_max_samples=early_max_samples)
+        if isolate:
+            with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
+                entry = pool.submit(measure_size, str(scene_path), int(size), float(seconds), **kw).result()
+        else:
+            entry = measure_size(str(scene_path), int(size), float(seconds), **kw)
+        entries.append(entry)
+        if progress is not None:
+            progress(entry)
+    return {
+        "sizes": entries,
+        "scene": {"path": str(scene_path), "name": Path(scene_path).name},
+        "seconds_per_size": float(seconds),
+        "early_seconds": float(early_seconds),
+        "psnr_measured": PSNR_MEASURE,
+        "isolated_processes": bool(isolate),
+        "peak_rss_measured": "ru_maxrss of the process that ran the size" + (
+            " (a fresh spawned process per size)" if isolate else " (one process for all sizes: cumulative)"),
+        "device": entries[0]["device"] if entries else None,
+    }

@@ -1,0 +1,47 @@
+"""`bench scale` (issue 18 item 4): a tiny run writes the asked schema, with the types it promises, and a plot."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+KEYS = {"size": int, "seconds_to_25": (float, type(None)), "seconds_to_30": (float, type(None)),
+        "steps_per_s_early": (float, type(None)), "steps_per_s": (float, type(None)), "samples_per_ray": float,
+        "render_ms": float, "eval_seconds": float, "train_seconds": float, "peak_rss_mb": float}
+
+
+def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
+    from repaint_nerf.app.cli import main
+
+    scene = scene_factory("demo", size=48, views=6, test_views=3)
+    out = tmp_path / "scale.json"
+    assert main(["bench", "scale", "--scene", str(scene), "--sizes", "32,48", "--seconds", "3", "--evals", "1",
+                 "--early-seconds", "1", "--rays", "512", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert [e["size"] for e in res["sizes"]] == [32, 48]
+    for e in res["sizes"]:
+        for key, kind in KEYS.items():
+            assert isinstance(e[key], kind), (key, e[key])
+        assert max(e["image_size"]) == e["size"]  # the scene loaded at that long side
+        assert e["train_seconds"] >= 3.0 and e["peak_rss_mb"] > 100
+        assert 1 <= e["steps_early"] <= e["steps"] and e["steps_per_s_early"] > 0  # the first second's steps
+        assert (e["steps_per_s"] is None) == (e["steps_early"] == e["steps"])
+        assert len(e["curve"]) == 2 and e["curve"][0]["step"] == 0 and e["curve"][1]["step"] == e["steps"]
+    assert res["isolated_processes"] and "bounded evaluation" in res["psnr_measured"]
+    assert out.with_suffix(".png").stat().st_size > 1000
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_bench_scale_bad_sizes_are_a_user_error(tmp_path):
+    from repaint_nerf.app.cli import main
+
+    for bad in ("", "128,x", "4"):
+        assert main(["bench", "scale", "--sizes", bad, "--json", str(tmp_path / "o.json")]) != 0
+
+
+def test_time_to_interpolates_between_evaluations():
+    from repaint_nerf.core.bench.recon import time_to
+
+    curve = [{"seconds": 0.0, "psnr": 10.0}, {"seconds": 10.0, "psnr": 20.0}, {"seconds": 20.0, "psnr": 30.0}]
+    assert time_to(curve, 25.0) == pytest.approx(15.0)
+    assert time_to(curve, 31.0) is None
