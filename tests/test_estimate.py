@@ -13,14 +13,14 @@ CPU = torch.device("cpu")
 
 
 def test_sd_step_scales_with_sds_pixels_and_options():
-    s512, fixed = est.SD_STEP_SECONDS_512["cpu"][("fp32", False)]
+    s512, fixed = est.SD_STEP_SECONDS_512["cpu"][("fp32", False, False)]
     full, how = sd_step_seconds(CPU, "fp32", False, 512)
     assert full == s512 and "bench sdcost" in how
     # a fixed part plus a part per pixel: 256 px (1/4 of the pixels) costs f + (1 - f) / 4 of 512 px
     assert sd_step_seconds(CPU, "fp32", False, 256)[0] == pytest.approx(s512 * (fixed + (1 - fixed) / 4))
     assert sd_step_seconds(CPU, "fp32", False, 1024)[0] == pytest.approx(s512 * (fixed + 4 * (1 - fixed)))
     assert sd_step_seconds(CPU, "fp32", False, None)[0] == full  # the model's own 512 px
-    assert sd_step_seconds(CPU, "bf16", True, 512)[0] == est.SD_STEP_SECONDS_512["cpu"][("bf16", True)][0]
+    assert sd_step_seconds(CPU, "bf16", True, 512)[0] == est.SD_STEP_SECONDS_512["cpu"][("bf16", True, False)][0]
     assert sd_step_seconds(CPU, "bf16", True, 512)[0] < full
     assert sd_step_seconds("meta", "fp32")[0] is None  # no figure for that device kind
 
