@@ -25,6 +25,18 @@ def test_sd_step_scales_with_sds_pixels_and_options():
     assert sd_step_seconds("meta", "fp32")[0] is None  # no figure for that device kind
 
 
+def test_sd_step_with_token_merging():
+    merged, how = sd_step_seconds(CPU, "bf16", True, 512, token_merging=0.5)
+    assert merged == est.SD_STEP_SECONDS_512["cpu"][("bf16", True, True)][0] and "token merging" in how
+    assert merged < sd_step_seconds(CPU, "bf16", True, 512)[0]
+    # not measured with fp32 and the VAE: the figure without it, and the note says so
+    plain = sd_step_seconds(CPU, "fp32", False, 256)
+    merged_fp32 = sd_step_seconds(CPU, "fp32", False, 256, token_merging=0.5)
+    assert merged_fp32[0] == plain[0] and "not measured" in merged_fp32[1]
+    e = estimate_repaint("sd", 10, (64, 64), CPU, unet_precision="bf16", tiny_autoencoder=True, token_merging=0.5)
+    assert e.guidance_seconds == merged
+
+
 def test_estimate_scales_with_render_pixels_and_steps():
     a = estimate_repaint("sd", 100, (64, 64), CPU, unet_precision="fp32")
     b = estimate_repaint("sd", 100, (128, 128), CPU, unet_precision="fp32")

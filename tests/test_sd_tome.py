@@ -63,7 +63,7 @@ def test_off_is_the_exact_unet_and_on_merges_tokens(sd, monkeypatch):
     t = torch.tensor([500, 500])
     emb = sd.encode_text(["", "a rose"])
     plain = sd.predict_noise(lat, t, emb)
-    assert set_token_merging(sd.unet, 0.5) == 3  # the first down block (1 layer) and the last up block (2)
+    assert set_token_merging(sd.unet, 0.5, min_tokens=0) == 3  # the first down block (1 layer) and the last up block (2)
     seen = []
     real = TokenMergingProcessor.__call__
 
@@ -92,11 +92,21 @@ def test_off_is_the_exact_unet_and_on_merges_tokens(sd, monkeypatch):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_merged_guidance_gradient_close_to_unmerged(sd, seed):
     ref = _image_grad(sd, seed)
-    set_token_merging(sd.unet, 0.5)
+    set_token_merging(sd.unet, 0.5, min_tokens=0)
     got = _image_grad(sd, seed)
     cos = float(torch.nn.functional.cosine_similarity(ref, got, dim=0))
     assert torch.isfinite(got).all() and cos > TOME_COSINE_BAR, cos
     assert not torch.equal(ref, got)
+
+
+def test_small_grids_are_not_merged(sd):
+    lat = torch.randn(2, 4, 8, 8, generator=torch.Generator().manual_seed(4))
+    t, emb = torch.tensor([300, 300]), sd.encode_text(["", "a rose"])
+    plain = sd.predict_noise(lat, t, emb)
+    set_token_merging(sd.unet, 0.5)  # the tiny UNet's 64 tokens are below MIN_TOKENS
+    assert torch.equal(sd.predict_noise(lat, t, emb), plain)
+    set_token_merging(sd.unet, 0.5, min_tokens=64)
+    assert not torch.equal(sd.predict_noise(lat, t, emb), plain)
 
 
 def test_ratio_out_of_range(sd):
