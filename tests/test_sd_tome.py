@@ -113,3 +113,23 @@ def test_ratio_out_of_range(sd):
     for bad in (-0.1, 0.8):
         with pytest.raises(UserError, match="token-merging ratio"):
             set_token_merging(sd.unet, bad)
+
+
+def test_the_config_and_flag_reach_the_unet(sd):
+    import argparse
+    from types import SimpleNamespace
+
+    from repaint_nerf.app.commands.repaint import add_arguments, config_from_args
+    from repaint_nerf.core.repaint.config import RepaintConfig
+    from repaint_nerf.core.repaint.registry import GuidanceInputs, get
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    cfg = config_from_args(p.parse_args(["ws", "--token-merging", "0.25"]))
+    assert cfg.sd_token_merging == 0.25
+    assert config_from_args(p.parse_args(["ws"])).sd_token_merging == RepaintConfig().sd_token_merging
+    t = SimpleNamespace(prompt="a rose", cfg=cfg, device=torch.device("cpu"), workspace=None)
+    guidance = get("sd").factory(t, GuidanceInputs(sd_path=sd.path))  # what the trainer builds
+    procs = [m.processor for n, m in guidance.sd.unet.named_modules() if n.endswith("attn1")]
+    merged = [p for p in procs if isinstance(p, TokenMergingProcessor)]
+    assert len(merged) == 3 and all(p.ratio == 0.25 for p in merged)

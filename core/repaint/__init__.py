@@ -28,7 +28,8 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
                    sd_path: str | os.PathLike | None = None, settings: Mapping[str, Any] | None = None,
                    targets=None, device=None, cpu_offload: bool = False,
                    unet_precision: str = "auto", tiny_autoencoder: str | os.PathLike | None = None,
-                   channels_last: bool = False, token_merging: float = 0.0, sd_config: str | os.PathLike | None = None,
+                   channels_last: bool = False, token_merging: float = 0.0,
+                   sd_config: str | os.PathLike | None = None,
                    sd_family: str | None = None, prediction_type: str | None = None, **options) -> Guidance:
     """A guidance backend: 'sd' (Stable Diffusion from flag > env > settings) or 'analytic' (needs `targets`).
 

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 
 import torch
 
+from repaint_nerf.core.repaint.config import RepaintConfig
+
 # Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder, token merging), and the fixed fraction f
 # of it that does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core
 # AMD EPYC (avx512_bf16), SD 1.5 architecture, channels-last UNet and tiny autoencoder. The idle fp32 baseline
@@ -83,7 +85,8 @@ def _device_kind(device: torch.device | str) -> str:
 
 
 def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", tiny_autoencoder: bool = False,
-                    sds_resolution: int | None = None, token_merging: float = 0.0) -> tuple[float | None, str]:
+                    sds_resolution: int | None = None,
+                    token_merging: float = RepaintConfig.sd_token_merging) -> tuple[float | None, str]:
     """Stored seconds per SDS step for the device kind and options, scaled by (sds_resolution / 512)^2.
 
     Token merging was measured with the bf16 UNet and the tiny autoencoder; with other options the figure
@@ -112,7 +115,7 @@ def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", ti
 def estimate_repaint(kind: str, steps: int, render_size: tuple[int, int], device: torch.device | str,
                      field_step_seconds: float | None = None, unet_precision: str = "auto",
                      tiny_autoencoder: bool = False, sds_resolution: int | None = None,
-                     token_merging: float = 0.0) -> Estimate:
+                     token_merging: float = RepaintConfig.sd_token_merging) -> Estimate:
     """Expected duration of `steps` repaint steps with guidance `kind` at a render of `render_size` (h, w).
 
     `field_step_seconds`: a measured render+backward on this device (else the stored per-pixel figure).
