@@ -13,16 +13,29 @@ CPU = torch.device("cpu")
 
 
 def test_sd_step_scales_with_sds_pixels_and_options():
-    s512, fixed = est.SD_STEP_SECONDS_512["cpu"][("fp32", False)]
+    s512, fixed = est.SD_STEP_SECONDS_512["cpu"][("fp32", False, False)]
     full, how = sd_step_seconds(CPU, "fp32", False, 512)
     assert full == s512 and "bench sdcost" in how
     # a fixed part plus a part per pixel: 256 px (1/4 of the pixels) costs f + (1 - f) / 4 of 512 px
     assert sd_step_seconds(CPU, "fp32", False, 256)[0] == pytest.approx(s512 * (fixed + (1 - fixed) / 4))
     assert sd_step_seconds(CPU, "fp32", False, 1024)[0] == pytest.approx(s512 * (fixed + 4 * (1 - fixed)))
     assert sd_step_seconds(CPU, "fp32", False, None)[0] == full  # the model's own 512 px
-    assert sd_step_seconds(CPU, "bf16", True, 512)[0] == est.SD_STEP_SECONDS_512["cpu"][("bf16", True)][0]
-    assert sd_step_seconds(CPU, "bf16", True, 512)[0] < full
+    bf16_tiny = sd_step_seconds(CPU, "bf16", True, 512, token_merging=0.0)[0]
+    assert bf16_tiny == est.SD_STEP_SECONDS_512["cpu"][("bf16", True, False)][0] < full
     assert sd_step_seconds("meta", "fp32")[0] is None  # no figure for that device kind
+
+
+def test_sd_step_with_token_merging():
+    merged, how = sd_step_seconds(CPU, "bf16", True, 512, token_merging=0.5)
+    assert merged == est.SD_STEP_SECONDS_512["cpu"][("bf16", True, True)][0] and "token merging" in how
+    assert merged < sd_step_seconds(CPU, "bf16", True, 512, token_merging=0.0)[0]
+    assert sd_step_seconds(CPU, "bf16", True, 512)[0] == merged  # RepaintConfig's default merges
+    # not measured with fp32 and the VAE: the figure without it, and the note says so
+    plain = sd_step_seconds(CPU, "fp32", False, 256)
+    merged_fp32 = sd_step_seconds(CPU, "fp32", False, 256, token_merging=0.5)
+    assert merged_fp32[0] == plain[0] and "not measured" in merged_fp32[1]
+    e = estimate_repaint("sd", 10, (64, 64), CPU, unet_precision="bf16", tiny_autoencoder=True, token_merging=0.5)
+    assert e.guidance_seconds == merged
 
 
 def test_estimate_scales_with_render_pixels_and_steps():

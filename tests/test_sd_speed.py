@@ -9,7 +9,7 @@ import torch
 
 from repaint_nerf.core.errors import ModelNotFoundError, UserError
 from repaint_nerf.core.models.sd import load_stable_diffusion
-from repaint_nerf.core.models.sd_speed import apply_speed_options, cpu_has_bf16, unet_dtype
+from repaint_nerf.core.models.sd_speed import apply_speed_options, cpu_has_bf16, set_channels_last, unet_dtype
 from repaint_nerf.core.repaint.sds import SDSGuidance
 from repaint_scene import make_field, make_grid, make_scene
 from tiny_diffusion import cached
@@ -85,11 +85,28 @@ def test_tiny_autoencoder_replaces_the_vae_encoder_and_trains(sd, tmp_path, monk
     assert tr.guidance.sd.tiny_vae is not None and tr.guidance.sd.unet_dtype == torch.bfloat16
     conv = tr.guidance.sd.unet.conv_in.weight
     assert conv.is_contiguous(memory_format=torch.channels_last) and not conv.is_contiguous()  # the default
+    ae_conv = tr.guidance.sd.tiny_vae.encoder.layers[0].weight
+    assert ae_conv.is_contiguous(memory_format=torch.channels_last) and not ae_conv.is_contiguous()
     before = field.col.detach().clone()
     infos = [tr.step() for _ in range(3)]
     assert all(not i["skipped"] and np.isfinite(i["loss"]) for i in infos)
     assert not torch.equal(before, field.col.detach())
     assert all(p.grad is None for p in tr.guidance.sd.tiny_vae.parameters())
+
+
+def test_channels_last_tiny_autoencoder_gives_the_same_latents_and_gradient(sd, tmp_path):
+    apply_speed_options(sd, "fp32", make_tiny_autoencoder(tmp_path / "ae"), channels_last=False)
+    outs = []
+    for on in (False, True):
+        set_channels_last(sd, on)
+        x = torch.rand(1, 3, 64, 64, generator=torch.Generator().manual_seed(0)).requires_grad_(True)
+        lat = sd.encode_images(x)
+        (lat * torch.linspace(-1, 1, lat.numel()).view(lat.shape)).sum().backward()
+        outs.append((lat.detach(), x.grad))
+    w = sd.tiny_vae.encoder.layers[0].weight
+    assert w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous()
+    torch.testing.assert_close(outs[1][0], outs[0][0], atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(outs[1][1], outs[0][1], atol=1e-6, rtol=1e-4)
 
 
 def test_tiny_autoencoder_from_the_local_cache_without_network(tmp_path, monkeypatch):

@@ -1,5 +1,5 @@
 """`repaint-nerf bench sdcost`: what one Stable Diffusion score-distillation step costs, stage by stage, for
-each speed option (bf16 UNet, tiny autoencoder, 256-px SDS and their combination), measured in one process
+each speed option (bf16 UNet, tiny autoencoder, 256-px SDS, token merging and their combination), measured in one process
 by core.bench.sdcost; writes the JSON and prints a table."""
 from __future__ import annotations
 
@@ -14,7 +14,10 @@ STAGES = ("resize", "encode_forward", "unet_forward", "loss", "rest", "backward"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from repaint_nerf.core.bench.sdcost import FAMILIES, OPTIONS
 
-    p.add_argument("--steps", type=int, default=2, help="timed steps per option (after one warm-up step each)")
+    p.add_argument("--steps", type=int, default=2, help="timed steps per option and round (after one warm-up step "
+                                                         "each)")
+    p.add_argument("--rounds", type=int, default=1,
+                   help="rounds in which the options take turns (a shared machine's load weighs on all alike)")
     p.add_argument("--size", type=int, default=128, help="render side in pixels (resized to the SDS resolution)")
     p.add_argument("--family", choices=FAMILIES, default="sd15", help="architecture: SD 1.5 or SD 2-base")
     p.add_argument("--options", default=None,
@@ -48,13 +51,17 @@ def run(args: argparse.Namespace) -> int:
         out.write_text(json.dumps(result, indent=2))
 
     result = measure(args.device, steps=args.steps, size=args.size, family=args.family, options=names,
+                     rounds=args.rounds,
                      progress=lambda m: print(m, flush=True), on_option=write)
     write(result)
     print("wall seconds (contended on a shared machine):")
     print(table(result))
     print("CPU seconds of this process (steadier under contention; / threads ~ an idle machine's wall time):")
     print(table(result, cpu=True))
-    if "bf16_grad_cosine" in result:
-        print("bf16 vs fp32 guidance-gradient cosine by t:", result["bf16_grad_cosine"])
+    cosines = {n: r["grad_cosine"] for n, r in result["options"].items() if "grad_cosine" in r}
+    if cosines:
+        print("guidance-gradient cosine with the fp32 UNet's, by t:")
+        for n, c in cosines.items():
+            print(f"  {n:<30}" + "  ".join(f"t={t}: {v:.4f}" for t, v in c.items()))
     print(f"wrote {out}")
     return 0

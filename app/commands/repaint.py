@@ -19,7 +19,7 @@ HELP = "repaint the selected region (stage 2) under a guidance and save it as a 
 # the field's default, so the CLI, the editor and the benchmarks share one set of defaults.
 CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_reduction", "lambda_clip", "resolution", "optimizer", "lr",
                 "mask_dilation", "seed", "sd_unet_precision", "sd_tiny_autoencoder", "sd_channels_last",
-                "sds_resolution", "t_schedule", "sd_config", "sd_family", "sd_prediction_type")
+                "sd_token_merging", "sds_resolution", "t_schedule", "sd_config", "sd_family", "sd_prediction_type")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -75,6 +75,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-channels-last", dest="sd_channels_last", action="store_false",
                    help="keep Stable Diffusion's UNet in PyTorch's default memory layout (channels-last, the "
                         "default, runs oneDNN's CPU convolutions without reorders: ~1.15x faster per step)")
+    p.add_argument("--token-merging", dest="sd_token_merging", type=float, default=d.sd_token_merging,
+                   metavar="RATIO",
+                   help="merge this ratio of the tokens in the self-attention of Stable Diffusion's highest-resolution "
+                        f"UNet blocks (ToMe for SD; 0 = off, at most 0.75; default {d.sd_token_merging:g})")
     p.add_argument("--t-schedule", default=d.t_schedule, choices=("uniform", "annealed"),
                    help="Stable Diffusion timestep draw: uniform over 2-98%% of T (official), or annealed: the "
                         "upper bound falls to 50%% of T over the run (detail late, for shorter runs)")

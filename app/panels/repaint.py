@@ -41,7 +41,7 @@ def _estimate(app) -> str:
     cams = s.scene_info.get("cameras")
     cfg = s.repaint_config
     key = (s.backend, int(cfg.steps), cfg.resolution, cfg.sd_unet_precision, cfg.sd_tiny_autoencoder,
-           cfg.sds_resolution, s.scene_info.get("device"), cams is not None)
+           cfg.sds_resolution, cfg.sd_token_merging, s.scene_info.get("device"), cams is not None)
     cache = app.cache.setdefault("repaint_estimate", {})
     if key not in cache:
         try:
@@ -53,7 +53,8 @@ def _estimate(app) -> str:
                                                s.scene_info.get("device") or get_device(), cfg.resolution,
                                                unet_precision=cfg.sd_unet_precision,
                                                tiny_autoencoder=bool(cfg.sd_tiny_autoencoder),
-                                               sds_resolution=cfg.sds_resolution).describe()
+                                               sds_resolution=cfg.sds_resolution,
+                                               token_merging=cfg.sd_token_merging).describe()
         except Exception as exc:  # a bad field value must not break the panel
             cache[key] = f"estimated time: unknown ({exc})"
     return cache[key]

@@ -5,14 +5,15 @@ SD 1.5's (or 2-base's) UNet, VAE and CLIP text encoder from their published conf
 weights, assembles them as the loader does (core.models.sd.assemble) and times SDSGuidance steps on a
 render of `size` pixels: resize to the SDS resolution, VAE encode forward, the classifier-free UNet pass,
 the loss, and the backward (through the encoder to the render). Every speed option (core.models.sd_speed,
-SDSGuidance's sds_resolution) runs in the same process, one after the other, so their ratios are fair on a
-shared machine; each step's and stage's CPU time is reported too (on a machine shared with other jobs the
+SDSGuidance's sds_resolution, token merging) runs in the same process, one after the other or taking turns
+over rounds, so their ratios are fair on a shared machine; each step's and stage's CPU time is reported too (on a machine shared with other jobs the
 CPU time per step / threads is a steadier guess of an idle machine's wall time than the contended wall
-time); peak resident memory is sampled per option. The bf16 UNet's guidance gradient is compared
-with fp32's (cosine) on fixed latents, noise and timesteps. The driver is app/bench/sdcost.py.
+time); peak resident memory is sampled per option. The guidance gradient of every option that changes the
+UNet (bf16, token merging) is compared with the fp32 UNet's (cosine) on fixed latents, noise and timesteps. The driver is app/bench/sdcost.py.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import statistics
 import threading
@@ -35,6 +36,7 @@ class StepOption:
     tiny_autoencoder: bool = False
     sds_resolution: int = 512
     channels_last: bool = False
+    token_merging: float = 0.0  # ratio of merged tokens in the highest-resolution self-attention (core.models.sd_tome)
 
 
 OPTIONS: dict[str, StepOption] = {  # fp32 ones first: converting the UNet to bf16 is one-way in a run
@@ -46,6 +48,8 @@ OPTIONS: dict[str, StepOption] = {  # fp32 ones first: converting the UNet to bf
     "bf16+tiny_ae+sds_256": StepOption("bf16", True, 256),
     "bf16+tiny_ae+nhwc": StepOption("bf16", True, 512, True),
     "bf16+tiny_ae+sds_256+nhwc": StepOption("bf16", True, 256, True),
+    # token merging acts at 512 px only (sd_tome.MIN_TOKENS: at 256 px it measured 0.88x-0.91x)
+    "bf16+tiny_ae+nhwc+tome": StepOption("bf16", True, 512, True, 0.5),
 }
 
 
@@ -144,7 +148,8 @@ def _count(m) -> int:
 
 
 def _guidance_grads(sd, guidance, latents: torch.Tensor, noise: torch.Tensor) -> list[torch.Tensor]:
-    """The SDS guidance gradient w(t)(eps_hat - eps) at COSINE_TIMESTEPS for fixed latents and noise (fp32)."""
+    """The SDS guidance gradient w(t)(eps_hat - eps) at COSINE_TIMESTEPS for fixed latents and noise (fp32),
+    with the UNet as it is set now (precision, token merging)."""
     out = []
     emb = guidance._embeddings
     with torch.no_grad():
@@ -157,22 +162,30 @@ def _guidance_grads(sd, guidance, latents: torch.Tensor, noise: torch.Tensor) ->
     return out
 
 
+def _changes_unet(opt: "StepOption") -> bool:
+    return opt.unet_precision != "fp32" or opt.token_merging > 0
+
+
 def _cosine(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(torch.nn.functional.cosine_similarity(a.flatten().double(), b.flatten().double(), dim=0))
 
 
-def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, device) -> dict:
+def _time_steps(sd, guidance, tiny, opt: StepOption, size: int, steps: int, device, raw: dict,
+                warm_up: bool) -> None:
+    """Time `steps` SDS steps under `opt` (after one untimed warm-up step when `warm_up`), appending the
+    wall and CPU seconds, per-stage figures and the peak RSS to `raw`."""
     from repaint_nerf.core.device import synchronize
     from repaint_nerf.core.models.sd_speed import set_channels_last, unet_dtype
+    from repaint_nerf.core.models.sd_tome import set_token_merging
 
     sd.set_unet_dtype(unet_dtype(opt.unet_precision, device))
-    set_channels_last(sd, opt.channels_last)
     sd.tiny_vae = tiny if opt.tiny_autoencoder else None
+    set_channels_last(sd, opt.channels_last)
+    set_token_merging(sd.unet, opt.token_merging)
     guidance.resolution = opt.sds_resolution
-    gen = torch.Generator().manual_seed(0)
-    totals, cpus, stages, cpu_stages = [], [], [], []
+    gen = torch.Generator().manual_seed(len(raw.setdefault("totals", [])))
     with PeakRSS() as mem:
-        for i in range(steps + 1):
+        for i in range(steps + int(warm_up)):
             rgb = torch.rand(1, 3, size, size, generator=gen).to(device).requires_grad_(True)
             synchronize(device)
             t0, c0 = time.perf_counter(), time.process_time()
@@ -183,31 +196,43 @@ def _time_option(sd, guidance, tiny, opt: StepOption, size: int, steps: int, dev
             t2, c2 = time.perf_counter(), time.process_time()
             if not (rgb.grad is not None and bool(torch.isfinite(rgb.grad).all())):
                 raise RuntimeError(f"non-finite gradient with option {opt}")
-            if i:  # the first step warms up allocators and kernels
-                totals.append(t2 - t0)
-                cpus.append(c2 - c0)
-                stages.append({**guidance.stage_seconds, "rest": (t1 - t0) - sum(guidance.stage_seconds.values()),
-                               "backward": t2 - t1})
-                cpu_stages.append({**guidance.stage_cpu_seconds,
-                                   "rest": (c1 - c0) - sum(guidance.stage_cpu_seconds.values()), "backward": c2 - c1})
+            if i or not warm_up:  # the first step warms up allocators and kernels
+                raw["totals"].append(t2 - t0)
+                raw.setdefault("cpus", []).append(c2 - c0)
+                raw.setdefault("stages", []).append(
+                    {**guidance.stage_seconds, "rest": (t1 - t0) - sum(guidance.stage_seconds.values()),
+                     "backward": t2 - t1})
+                raw.setdefault("cpu_stages", []).append(
+                    {**guidance.stage_cpu_seconds, "rest": (c1 - c0) - sum(guidance.stage_cpu_seconds.values()),
+                     "backward": c2 - c1})
+    raw["peak"] = max(raw.get("peak", 0.0), mem.peak)
+
+
+def _summary(opt: StepOption, raw: dict) -> dict:
+    """Medians over every timed step of an option (all rounds)."""
+    totals, cpus, stages, cpu_stages = raw["totals"], raw["cpus"], raw["stages"], raw["cpu_stages"]
     step_s = statistics.median(totals)
     names = stages[0].keys()
     return {"settings": asdict(opt), "step_seconds": step_s, "step_seconds_all": totals,
+            "step_cpu_seconds_all": cpus,
             "stages_seconds": {k: statistics.median(s[k] for s in stages) for k in names},
             "step_cpu_seconds": statistics.median(cpus),
             "stages_cpu_seconds": {k: statistics.median(s[k] for s in cpu_stages) for k in names},
             "idle_step_seconds_guess": statistics.median(cpus) / max(1, torch.get_num_threads()),
-            "peak_rss_mb": mem.peak, "paper_steps_hours": step_s * PAPER_STEPS / 3600.0}
+            "peak_rss_mb": raw["peak"], "paper_steps_hours": step_s * PAPER_STEPS / 3600.0}
 
 
 def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
             options: list[str] | None = None, progress: Callable[[str], None] | None = None,
-            on_option: Callable[[dict], None] | None = None) -> dict:
+            on_option: Callable[[dict], None] | None = None, rounds: int = 1) -> dict:
     """Time an SDS step for each of `options` (names in OPTIONS; default all) in this one process.
 
+    With `rounds` > 1 the options take turns, `steps` steps each per round (the fp32 ones' rounds first:
+    converting to bf16 is one-way), so a load that comes and goes on a shared machine weighs on all alike.
     Returns figures per option (median step and per-stage wall and CPU seconds, peak RSS), their speed-up
-    over the baseline, and the cosine between the bf16 and fp32 UNets' guidance gradients. `on_option(result)`
-    gets the result so far after each option (a long run's figures survive an interruption).
+    over the baseline, and for each option that changes the UNet (precision, token merging) the cosine of
+    its guidance gradient with the fp32 UNet's. `on_option(result)` gets the result so far after each option
+    (a long run's figures survive an interruption).
     """
     from repaint_nerf.core.device import describe, get_device, is_cuda
     from repaint_nerf.core.errors import UserError
@@ -215,9 +240,9 @@ def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
 
     names = list(OPTIONS) if not options else options
     unknown = [n for n in names if n not in OPTIONS]
-    if unknown or steps < 1 or size < 8:
-        raise UserError(f"bad sdcost request: unknown options {unknown}, steps {steps}, size {size}",
-                        hint=f"options: {', '.join(OPTIONS)}; steps >= 1; size >= 8")
+    if unknown or steps < 1 or size < 8 or rounds < 1:
+        raise UserError(f"bad sdcost request: unknown options {unknown}, steps {steps}, size {size}, rounds {rounds}",
+                        hint=f"options: {', '.join(OPTIONS)}; steps >= 1; size >= 8; rounds >= 1")
     say = progress or (lambda _m: None)
     device = get_device(device)
     cuda = is_cuda(device)
@@ -236,34 +261,53 @@ def measure(device=None, steps: int = 2, size: int = 128, family: str = "sd15",
                          "text_encoder": _count(sd.text_encoder) / 1e6,
                          **({"tiny_autoencoder": _count(tiny) / 1e6} if tiny is not None else {})},
         "render_size": size, "model_resolution": sd.resolution, "build_seconds": build_s,
-        "build_peak_rss_mb": mem_build.peak, "timed_steps_per_option": steps, "paper_steps": PAPER_STEPS,
+        "build_peak_rss_mb": mem_build.peak, "timed_steps_per_option": steps * rounds, "rounds": rounds,
+        "paper_steps": PAPER_STEPS,
         "options": {},
     }
-    ref_grads = None
-    gen = torch.Generator().manual_seed(2)
-    lat_shape = (1, 4, sd.unet.config.sample_size, sd.unet.config.sample_size)
-    fixed_latents = torch.randn(lat_shape, generator=gen).to(device)
-    fixed_noise = torch.randn(lat_shape, generator=gen).to(device)
+    # Guidance gradients on fixed latents and noise per SDS resolution: the fp32 UNet's (computed before any
+    # option converts it to bf16, which is one-way in a run), then each UNet-changing option's, as cosines.
+    fixed: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+    ref_grads: dict[int, list[torch.Tensor]] = {}
     for name in names:
+        res = OPTIONS[name].sds_resolution
+        if _changes_unet(OPTIONS[name]) and not cuda and res not in fixed:
+            gen = torch.Generator().manual_seed(2)
+            shape = (1, 4, res // sd.vae_scale_factor, res // sd.vae_scale_factor)
+            fixed[res] = (torch.randn(shape, generator=gen).to(device), torch.randn(shape, generator=gen).to(device))
+    if fixed:
+        sd.set_unet_dtype(torch.float32)
+        ref_grads = {res: _guidance_grads(sd, guidance, *fl) for res, fl in fixed.items()}
+    def actual(name: str) -> StepOption:
         opt = OPTIONS[name]
-        if cuda and opt.unet_precision == "fp32":
-            opt = StepOption("fp16", opt.tiny_autoencoder, opt.sds_resolution, opt.channels_last)  # the CUDA baseline is fp16
-        if opt.unet_precision == "bf16" and ref_grads is None and not cuda:
-            sd.set_unet_dtype(torch.float32)
-            ref_grads = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
-        say(f"sdcost: {name} ...")
-        result["options"][name] = r = _time_option(sd, guidance, tiny, opt, size, steps, device)
-        say(f"sdcost: {name}: {r['step_seconds']:.2f} s/step ({r['step_cpu_seconds']:.1f} CPU s), peak "
-            f"{r['peak_rss_mb']:.0f} MB, " + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_seconds"].items()))
-        _speedups(result)
-        if on_option is not None:
-            on_option(result)
-    if ref_grads is not None:
-        sd.set_unet_dtype(torch.bfloat16)
-        got = _guidance_grads(sd, guidance, fixed_latents, fixed_noise)
-        result["bf16_grad_cosine"] = {str(t): _cosine(a, b) for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
-        result["bf16_grad_rel_error"] = {str(t): float((a - b).norm() / a.norm().clamp_min(1e-12))
-                                         for t, a, b in zip(COSINE_TIMESTEPS, ref_grads, got)}
+        return dataclasses.replace(opt, unet_precision="fp16") if cuda and opt.unet_precision == "fp32" else opt
+
+    raw: dict[str, dict] = {n: {} for n in names}
+    groups = [[n for n in names if OPTIONS[n].unet_precision == "fp32"],
+              [n for n in names if OPTIONS[n].unet_precision != "fp32"]]
+    for group in groups:
+        for rnd in range(rounds):
+            for name in group:
+                opt = actual(name)
+                say(f"sdcost: {name} (round {rnd + 1}/{rounds}) ...")
+                _time_steps(sd, guidance, tiny, opt, size, steps, device, raw[name], warm_up=rnd == 0)
+                r = {**result["options"].get(name, {}), **_summary(opt, raw[name])}
+                result["options"][name] = r
+                if rnd == 0 and opt.sds_resolution in ref_grads and _changes_unet(opt):
+                    got = _guidance_grads(sd, guidance, *fixed[opt.sds_resolution])
+                    ref = ref_grads[opt.sds_resolution]
+                    r["grad_cosine"] = {str(t): _cosine(a, b) for t, a, b in zip(COSINE_TIMESTEPS, ref, got)}
+                    r["grad_rel_error"] = {str(t): float((a - b).norm() / a.norm().clamp_min(1e-12))
+                                           for t, a, b in zip(COSINE_TIMESTEPS, ref, got)}
+                say(f"sdcost: {name}: {r['step_seconds']:.2f} s/step ({r['step_cpu_seconds']:.1f} CPU s), peak "
+                    f"{r['peak_rss_mb']:.0f} MB, " + ", ".join(f"{k} {v:.2f}" for k, v in r["stages_seconds"].items())
+                    + (f", gradient cosine vs fp32 {r['grad_cosine']}" if "grad_cosine" in r else ""))
+                _speedups(result)
+                if on_option is not None:
+                    on_option(result)
+    if "grad_cosine" in result["options"].get("bf16_unet", {}):
+        result["bf16_grad_cosine"] = result["options"]["bf16_unet"]["grad_cosine"]
+        result["bf16_grad_rel_error"] = result["options"]["bf16_unet"]["grad_rel_error"]
     _speedups(result)
     return result
 

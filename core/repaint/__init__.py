@@ -28,12 +28,14 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
                    sd_path: str | os.PathLike | None = None, settings: Mapping[str, Any] | None = None,
                    targets=None, device=None, cpu_offload: bool = False,
                    unet_precision: str = "auto", tiny_autoencoder: str | os.PathLike | None = None,
-                   channels_last: bool = False, sd_config: str | os.PathLike | None = None,
+                   channels_last: bool = False, token_merging: float = 0.0,
+                   sd_config: str | os.PathLike | None = None,
                    sd_family: str | None = None, prediction_type: str | None = None, **options) -> Guidance:
     """A guidance backend: 'sd' (Stable Diffusion from flag > env > settings) or 'analytic' (needs `targets`).
 
     `sd_config`, `sd_family`, `prediction_type` go to the SD loader (core.models.sd.load_stable_diffusion);
-    `unet_precision`, `tiny_autoencoder` and `channels_last` are SD's speed options (core.models.sd_speed);
+    `unet_precision`, `tiny_autoencoder`, `channels_last` and `token_merging` are SD's speed options
+    (core.models.sd_speed);
     `options` go to the backend (guidance_scale, t_range, clip_value, clip_norm, seed, sds_resolution).
     """
     if kind == "sd":
@@ -45,7 +47,7 @@ def build_guidance(kind: str, *, prompt: str = "", negative_prompt: str = "",
         sd = load_stable_diffusion(resolve_model_path("sd", sd_path, settings), device=device,
                                    cpu_offload=cpu_offload, config=sd_config, family=sd_family,
                                    prediction_type=prediction_type)
-        apply_speed_options(sd, unet_precision, tiny_autoencoder, channels_last)
+        apply_speed_options(sd, unet_precision, tiny_autoencoder, channels_last, token_merging)
         return SDSGuidance(sd, prompt, negative_prompt, **options)
     if kind == "analytic":
         from repaint_nerf.core.repaint.analytic import AnalyticGuidance

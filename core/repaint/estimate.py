@@ -16,15 +16,20 @@ from dataclasses import dataclass
 
 import torch
 
-# Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder), and the fixed fraction f of it that
-# does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core AMD EPYC
-# (avx512_bf16), SD 1.5 architecture, channels-last UNet. The idle fp32 baseline is the issue's 30 s (bench
-# sdcost, 26-35 s); each option is 30 s / its wall-time speed-up measured side by side in one bench sdcost run
-# on the shared machine (contended; CPU-time speed-ups were lower: bf16 + tiny 2.9x vs 5.05x wall, so these
-# may be optimistic by up to ~1.5x). f from the same runs' 256 px / 512 px steps (0.30-0.48 -> f 0.15-0.31).
+from repaint_nerf.core.repaint.config import RepaintConfig
+
+# Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder, token merging), and the fixed fraction f
+# of it that does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core
+# AMD EPYC (avx512_bf16), SD 1.5 architecture, channels-last UNet and tiny autoencoder. The idle fp32 baseline
+# is the issue's 30 s (bench sdcost, 26-35 s); each option is 30 s / its CPU-time speed-up in one bench sdcost
+# run with the options taking turns over two rounds (/tmp/r16/sdcost_sd15.json; the machine was shared and its
+# wall times swung 2x, so CPU time, the steadier figure, is used: bf16 1.35x, bf16 + tiny 3.01x, + token
+# merging 3.88x). f from the same run's 256 px / 512 px steps: bf16 + tiny 0.40 -> f 0.21; token merging is
+# off at 256 px (sd_tome.MIN_TOKENS), so its f makes 256 px cost what bf16 + tiny costs there. fp32 + tiny and
+# the f of the VAE rows are the earlier session's (wall-time ratios).
 SD_STEP_SECONDS_512 = {
-    "cpu": {("fp32", False): (30.0, 0.23), ("bf16", False): (22.7, 0.23), ("fp32", True): (17.9, 0.31),
-            ("bf16", True): (5.9, 0.15)},
+    "cpu": {("fp32", False, False): (30.0, 0.23), ("bf16", False, False): (22.2, 0.23),
+            ("fp32", True, False): (17.9, 0.31), ("bf16", True, False): (10.0, 0.21), ("bf16", True, True): (7.7, 0.37)},
 }
 SD_REFERENCE_RESOLUTION = 512
 # Field step (render + backward + update) per megapixel of rays on a CPU: the README's stage-1 figure on this
@@ -80,8 +85,12 @@ def _device_kind(device: torch.device | str) -> str:
 
 
 def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", tiny_autoencoder: bool = False,
-                    sds_resolution: int | None = None) -> tuple[float | None, str]:
-    """Stored seconds per SDS step for the device kind and options, scaled by (sds_resolution / 512)^2."""
+                    sds_resolution: int | None = None,
+                    token_merging: float = RepaintConfig.sd_token_merging) -> tuple[float | None, str]:
+    """Stored seconds per SDS step for the device kind and options, scaled by (sds_resolution / 512)^2.
+
+    Token merging was measured with the bf16 UNet and the tiny autoencoder; with other options the figure
+    without it is used (an upper bound)."""
     from repaint_nerf.core.models.sd_speed import unet_dtype
 
     dev = torch.device(device)
@@ -89,20 +98,24 @@ def sd_step_seconds(device: torch.device | str, unet_precision: str = "auto", ti
     if table is None:
         return None, f"no stored Stable Diffusion figure for {dev.type}"
     precision = {torch.float32: "fp32", torch.bfloat16: "bf16", torch.float16: "fp16"}[unet_dtype(unet_precision, dev)]
-    entry = table.get((precision, bool(tiny_autoencoder)))
+    tome = token_merging > 0
+    entry = table.get((precision, bool(tiny_autoencoder), tome)) or table.get((precision, bool(tiny_autoencoder), False))
     if entry is None:
         return None, f"no stored Stable Diffusion figure for {dev.type} {precision}"
+    tome_note = "" if not tome else (", token merging" if (precision, bool(tiny_autoencoder), True) in table
+                                     else ", token merging not measured with these options: the figure without it")
     base, fixed = entry
     res = sds_resolution or SD_REFERENCE_RESOLUTION
     scale = fixed + (1.0 - fixed) * (res / SD_REFERENCE_RESOLUTION) ** 2
     enc = "tiny autoencoder" if tiny_autoencoder else "VAE"
-    return base * scale, (f"SD {base:.3g} s/step at 512 px from bench sdcost ({dev.type}, {precision} UNet, {enc}), "
-                          f"x {scale:.2f} at {res} px")
+    return base * scale, (f"SD {base:.3g} s/step at 512 px from bench sdcost ({dev.type}, {precision} UNet, {enc}"
+                          f"{tome_note}), x {scale:.2f} at {res} px")
 
 
 def estimate_repaint(kind: str, steps: int, render_size: tuple[int, int], device: torch.device | str,
                      field_step_seconds: float | None = None, unet_precision: str = "auto",
-                     tiny_autoencoder: bool = False, sds_resolution: int | None = None) -> Estimate:
+                     tiny_autoencoder: bool = False, sds_resolution: int | None = None,
+                     token_merging: float = RepaintConfig.sd_token_merging) -> Estimate:
     """Expected duration of `steps` repaint steps with guidance `kind` at a render of `render_size` (h, w).
 
     `field_step_seconds`: a measured render+backward on this device (else the stored per-pixel figure).
@@ -121,7 +134,7 @@ def estimate_repaint(kind: str, steps: int, render_size: tuple[int, int], device
     if kind != "sd":  # offline and analytic guidances: a few pixel operations beside the render
         guidance = 0.0
     else:
-        guidance, note = sd_step_seconds(dev, unet_precision, tiny_autoencoder, sds_resolution)
+        guidance, note = sd_step_seconds(dev, unet_precision, tiny_autoencoder, sds_resolution, token_merging)
         notes.append(note)
     return Estimate(int(steps), field, guidance, "; ".join(notes))
 
@@ -156,7 +169,8 @@ class Progress:
 def estimate_before_start(kind: str, steps: int, width: int, height: int, device: torch.device | str,
                           resolution: int | None = None, **sd_options) -> Estimate:
     """The estimate for a scene's training image size, at the edit resolution the trainer would pick (stored
-    figures only: nothing is timed). `sd_options`: unet_precision, tiny_autoencoder, sds_resolution."""
+    figures only: nothing is timed). `sd_options`: unet_precision, tiny_autoencoder, sds_resolution,
+    token_merging."""
     from repaint_nerf.core.repaint.trainer import default_resolution
 
     dev = torch.device(device)

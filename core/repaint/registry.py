@@ -83,7 +83,8 @@ def _sd(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
     return build_guidance("sd", prompt=t.prompt, negative_prompt=inputs.negative_prompt, sd_path=inputs.sd_path,
                           settings=settings, device=t.device, seed=t.cfg.seed,
                           unet_precision=t.cfg.sd_unet_precision, tiny_autoencoder=t.cfg.sd_tiny_autoencoder,
-                          channels_last=t.cfg.sd_channels_last, sds_resolution=t.cfg.sds_resolution,
+                          channels_last=t.cfg.sd_channels_last, token_merging=t.cfg.sd_token_merging,
+                          sds_resolution=t.cfg.sds_resolution,
                           t_schedule=t.cfg.t_schedule, total_steps=t.cfg.steps, sd_config=t.cfg.sd_config,
                           sd_family=t.cfg.sd_family, prediction_type=t.cfg.sd_prediction_type)
 

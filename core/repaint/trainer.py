@@ -322,7 +322,7 @@ class RepaintTrainer:
                                field_step_seconds=self.time_field_step() if time_field else None,
                                unet_precision=self.cfg.sd_unet_precision,
                                tiny_autoencoder=bool(self.cfg.sd_tiny_autoencoder),
-                               sds_resolution=self.cfg.sds_resolution)
+                               sds_resolution=self.cfg.sds_resolution, token_merging=self.cfg.sd_token_merging)
         self.progress.prior = est.step_seconds
         return est
 
