@@ -358,6 +358,14 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
     sel = Selection.load(ws)
     # without --threshold, select uses (and saves) the patch's automatic threshold
     assert sel.patches == [p] and sel.auto_threshold is not None and sel.threshold == sel.auto_threshold
+    index = json.loads((ws.masks_dir / "index.json").read_text())
+    assert index["geometry"] == ["cleanup3d"]
+    # --geometry full: every geometry part shapes the saved masks
+    assert main(["select", str(ws.root), "--view", str(p.view), "--patch", f"{p.x0},{p.y0},{p.x1},{p.y1}",
+                 "--out", str(tmp_path / "full"), "--geometry", "full"]) == 0
+    index = json.loads((ws.masks_dir / "index.json").read_text())
+    assert set(index["geometry"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote"}
+    assert len(load_masks(tmp_path / "full")) == len(scene.train)
 
 
 def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):

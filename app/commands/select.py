@@ -35,6 +35,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "similarity and the field's depth edges in its view; for a text query, Otsu's split of the "
                         "similarities over every view)")
     p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
+    p.add_argument("--geometry", choices=("basic", "full"), default="basic",
+                   help="the field's geometry in the masks: 'basic' = the voxel 3D clean-up; 'full' adds depth "
+                        "edges, concave creases (contact lines), growth from the patch carried between views, the "
+                        "views' vote and hole filling: for objects resting on or touching look-alikes")
     p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -123,7 +127,11 @@ def run(args: argparse.Namespace) -> int:
             sel.threshold = sel.auto_threshold
     threshold = sel.threshold
     names = list(scene.train.names)
-    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
+    from repaint_nerf.core.select.geometry import DEFAULT_PARTS, FULL_PARTS
+
+    parts = FULL_PARTS if args.geometry == "full" else DEFAULT_PARTS
+    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine,
+                            parts=parts)
     sel_path = sel.save(ws)
     out = Path(args.out)
     write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})
