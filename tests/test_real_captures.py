@@ -202,10 +202,8 @@ def test_early_steps_of_a_foggy_field_march_the_early_budget(scene_factory):
 
 def test_untrained_field_at_256_px_renders_in_4x_the_work_of_128_px(scene_factory):
     """A foggy field marches to the far bound. Trained at 256 px its render does 4x the work of 128 px (the pixels),
-    not 8x: the early march budget does not follow the image size. Time: the 256-px trainer's render takes no
-    longer than the 128-px trainer's field rendered at 256 px (equal work; before coarse-to-fine marching it took
-    2x). A time ratio 256/128 of at most 4x is not asserted: with equal samples per ray it measured 4.5-5.0x on
-    the contended 2-core machine, a per-sample cost that grows with the ray count, not explained yet."""
+    not 8x: the early march budget does not follow the image size. The work (samples evaluated) is what is
+    asserted, as a count; the render times it leads to are bench scale's figures (`render_ms`), not a test's."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
@@ -215,21 +213,14 @@ def test_untrained_field_at_256_px_renders_in_4x_the_work_of_128_px(scene_factor
                   for side in (128, 256))
     ev = small.evaluate(full=True, max_views=1)
     work_small = ev["samples_per_ray"] * ev["pixels"]
-    cams = big.scene.field_cameras("test")
-    opts = RenderOptions(outputs=("rgb",), background=small.eval_background(), perturb=False,
-                         max_samples=small.march_samples)
-    times: dict[str, list[float]] = {"big": [], "small_field": []}
-    for _ in range(2):  # interleaved: a shared machine's load falls on both alike
-        t0 = time.perf_counter()
-        ev = big.evaluate(full=True, max_views=1)
-        times["big"].append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        ref = render_camera(small.field, small.grid, cams, 0, opts)
-        times["small_field"].append(time.perf_counter() - t0)
+    ev = big.evaluate(full=True, max_views=1)
     assert ev["pixels"] == 256 * 256 and ev["samples_per_ray"] <= big.march_samples == small.march_samples == 256
     assert ev["samples_per_ray"] * ev["pixels"] <= 4.0 * work_small * 1.01
+    # the same field rendered at 256 px by the renderer directly marches the same samples per ray
+    opts = RenderOptions(outputs=("rgb",), background=small.eval_background(), perturb=False,
+                         max_samples=small.march_samples)
+    ref = render_camera(small.field, small.grid, big.scene.field_cameras("test"), 0, opts)
     assert abs(ref["stats"]["samples_per_ray"] - ev["samples_per_ray"]) <= 0.05 * ev["samples_per_ray"]
-    assert min(times["big"]) <= 1.3 * min(times["small_field"]), times
 
 
 def test_big_photos_are_held_at_training_resolution_and_decoded_one_at_a_time(tmp_path, monkeypatch):
