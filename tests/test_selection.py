@@ -365,6 +365,7 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
                  "--out", str(tmp_path / "full"), "--geometry", "full"]) == 0
     index = json.loads((ws.masks_dir / "index.json").read_text())
     assert set(index["geometry"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote"}
+    assert Selection.load(ws).geometry == "full"  # saved with the selection, so a later mask pass uses it too
     assert len(load_masks(tmp_path / "full")) == len(scene.train)
 
 

@@ -127,11 +127,8 @@ def run(args: argparse.Namespace) -> int:
             sel.threshold = sel.auto_threshold
     threshold = sel.threshold
     names = list(scene.train.names)
-    from repaint_nerf.core.select.geometry import DEFAULT_PARTS, FULL_PARTS
-
-    parts = FULL_PARTS if args.geometry == "full" else DEFAULT_PARTS
-    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine,
-                            parts=parts)
+    sel.geometry = args.geometry
+    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
     sel_path = sel.save(ws)
     out = Path(args.out)
     write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})

@@ -204,6 +204,16 @@ class GeometryParts:
 # 32-px field (an 8-px sphere) every part gave 0.734 against 0.944, its rough depth cutting the sphere with edges.
 DEFAULT_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False)
 FULL_PARTS = GeometryParts()
+GEOMETRY_NAMES = ("basic", "full")
+
+
+def parts_named(name: str) -> GeometryParts:
+    """The geometry parts a selection names: 'basic' (DEFAULT_PARTS) or 'full' (FULL_PARTS)."""
+    from repaint_nerf.core.errors import UserError
+
+    if name not in GEOMETRY_NAMES:
+        raise UserError(f"unknown selection geometry {name!r}", hint="use 'basic' or 'full'")
+    return FULL_PARTS if name == "full" else DEFAULT_PARTS
 
 SEED_DEPTH_TOL = 0.015  # a projected seed point lands on a view's surface when its depth agrees this well (relative)
 MAX_SEED_POINTS = 4000

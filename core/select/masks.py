@@ -126,10 +126,10 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
                     refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
     (WS/masks) when given. `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
-    geometry.GeometryParts, default DEFAULT_PARTS) seeded by the selection's positive patches in
+    geometry.GeometryParts, default: the parts the selection's `geometry` names) seeded by the selection's positive patches in
     training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
     the final masks."""
-    from repaint_nerf.core.select.geometry import DEFAULT_PARTS, GeometryParts
+    from repaint_nerf.core.select.geometry import GeometryParts, parts_named
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
     cache = cache or ViewCache(field, grid, cameras)
@@ -143,7 +143,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
     seeds = [(p.view, p) for p in selection.patches if p.positive and 0 <= p.view < n]
-    parts = (parts or DEFAULT_PARTS) if do_cleanup and seeds else GeometryParts.none()
+    parts = (parts or parts_named(getattr(selection, "geometry", "basic"))) if do_cleanup and seeds else GeometryParts.none()
     out = shaped_masks(sims, maps, cameras, seeds, t, parts)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]

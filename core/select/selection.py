@@ -30,6 +30,7 @@ class Selection:
     texts: list[str] = field(default_factory=list)
     threshold: float = DEFAULT_THRESHOLD  # what the masks use: the automatic one unless the user chose one
     cleanup: bool = True
+    geometry: str = "basic"  # the geometry parts of the masks: 'basic' or 'full' (core.select.geometry.parts_named)
     auto_threshold: float | None = None  # the automatic threshold of the queries (core.select.autothreshold)
     teacher: str = ""
     created: float = field(default_factory=time.time)
@@ -94,6 +95,7 @@ class Selection:
     # -- saving ----------------------------------------------------------------------------------
     def to_dict(self) -> dict:
         return {"format": FORMAT_VERSION, "threshold": float(self.threshold), "cleanup": bool(self.cleanup),
+                "geometry": self.geometry,
                 "auto_threshold": None if self.auto_threshold is None else float(self.auto_threshold),
                 "teacher": self.teacher, "created": self.created, "texts": list(self.texts),
                 "patches": [p.to_dict() for p in self.patches],
@@ -108,7 +110,8 @@ class Selection:
                          positives=[torch.tensor(q, dtype=torch.float32) for q in d["positives"]],
                          negatives=[torch.tensor(q, dtype=torch.float32) for q in d["negatives"]],
                          texts=list(d.get("texts", [])), threshold=check_threshold(d["threshold"]),
-                         cleanup=bool(d.get("cleanup", True)), teacher=str(d.get("teacher", "")),
+                         cleanup=bool(d.get("cleanup", True)), geometry=str(d.get("geometry", "basic")),
+                         teacher=str(d.get("teacher", "")),
                          auto_threshold=None if d.get("auto_threshold") is None
                          else check_threshold(d["auto_threshold"]),
                          created=float(d.get("created", 0.0)))
