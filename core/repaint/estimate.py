@@ -20,16 +20,14 @@ from repaint_nerf.core.repaint.config import RepaintConfig
 
 # Seconds per SDS step at 512 px by (UNet precision, tiny autoencoder, token merging), and the fixed fraction f
 # of it that does not shrink with the SDS resolution: s(r) = s512 * (f + (1 - f) * (r / 512)^2). CPU: 2-core
-# AMD EPYC (avx512_bf16), SD 1.5 architecture, channels-last UNet and tiny autoencoder. The idle fp32 baseline
-# is the 30 s (bench sdcost, 26-35 s); each option is 30 s / its CPU-time speed-up in one bench sdcost
-# run with the options taking turns over two rounds (/tmp/r16/sdcost_sd15.json; the machine was shared and its
-# wall times swung 2x, so CPU time, the steadier figure, is used: bf16 1.35x, bf16 + tiny 3.01x, + token
-# merging 3.88x). f from the same run's 256 px / 512 px steps: bf16 + tiny 0.40 -> f 0.21; token merging is
-# off at 256 px (sd_tome.MIN_TOKENS), so its f makes 256 px cost what bf16 + tiny costs there. fp32 + tiny and
-# the f of the VAE rows are the earlier session's (wall-time ratios).
+# AMD EPYC (avx512_bf16), SD 1.5 architecture, channels-last UNet and tiny autoencoder, `bench sdcost` on an
+# idle machine, one step each: fp32 + VAE 26.9 s, bf16 + tiny 5.78 s, + token merging 4.74 s; bf16 + tiny at
+# 256 px 1.28 s -> f 0.02 (token merging is off at 256 px, sd_tome.MIN_TOKENS, so its f makes 256 px cost what
+# bf16 + tiny costs there). bf16 + VAE and fp32 + tiny are earlier shared-machine ratios scaled to the idle 26.9 s
+# baseline; the f of the VAE rows are the earlier session's.
 SD_STEP_SECONDS_512 = {
-    "cpu": {("fp32", False, False): (30.0, 0.23), ("bf16", False, False): (22.2, 0.23),
-            ("fp32", True, False): (17.9, 0.31), ("bf16", True, False): (10.0, 0.21), ("bf16", True, True): (7.7, 0.37)},
+    "cpu": {("fp32", False, False): (26.9, 0.23), ("bf16", False, False): (19.9, 0.23),
+            ("fp32", True, False): (16.1, 0.31), ("bf16", True, False): (5.78, 0.02), ("bf16", True, True): (4.74, 0.03)},
 }
 SD_REFERENCE_RESOLUTION = 512
 # Field step (render + backward + update) per megapixel of rays on a CPU: the README's stage-1 figure on this
