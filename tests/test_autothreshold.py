@@ -97,15 +97,14 @@ def test_fill_holes_keeps_holes_with_a_barrier():
     assert out[5:8, 5:8].all() and not out[11:15, 11:15].any()
 
 
-def _two_view_scene(gap: float = 0.12, eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4))):
-    """A box of its support's colour `gap` above a ground plane (as a loaf touches its board at one point,
-    its whole silhouette is a depth step; at gap 0 it stands on it, and its sides meet the ground in a
-    concave crease with no depth step), seen by cameras at `eyes`: depth and ids per view."""
+def _two_view_scene(eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4))):
+    """A box of its support's colour just above a ground plane (as a loaf touches its board at one point,
+    its whole silhouette is a depth step), seen by cameras at `eyes` (two by default): depth and ids per view."""
     h = w = 64
     f = 70.0
     cams = Cameras.create(np.stack([look_at(e, (0.0, 0.0, 0.2)) for e in eyes]), f, f, w / 2, h / 2, w, h)
     depths, ids = [], []
-    lo, hi = np.array([-0.3, -0.3, gap]), np.array([0.3, 0.3, gap + 0.5])
+    lo, hi = np.array([-0.3, -0.3, 0.12]), np.array([0.3, 0.3, 0.62])
     for i in range(len(eyes)):
         o, d, dz = cams.image_rays(i)
         o, d = o.numpy().astype(np.float64), d.numpy().astype(np.float64)

@@ -13,6 +13,8 @@ HELP = ("select an object by a patch in one training view (or by text with a CLI
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from repaint_nerf.core.select.geometry import GEOMETRY_NAMES
+
     p.add_argument("workspace", help="workspace folder trained with a feature head (repaint-nerf train)")
     p.add_argument("--view", type=int, default=None, help="training view index the patches are drawn in")
     query = p.add_mutually_exclusive_group(required=True)
@@ -35,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "similarity and the field's depth edges in its view; for a text query, Otsu's split of the "
                         "similarities over every view)")
     p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
-    p.add_argument("--geometry", choices=("basic", "full"), default="basic",
+    p.add_argument("--geometry", choices=GEOMETRY_NAMES, default="basic",
                    help="the field's geometry in the masks: 'basic' = the voxel 3D clean-up; 'full' adds depth "
                         "edges, concave creases (contact lines), growth from the patch carried between views, the "
                         "views' vote and hole filling: for objects resting on or touching look-alikes")
@@ -87,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from repaint_nerf.core.select.autothreshold import selection_auto_threshold
+    from repaint_nerf.core.select.autothreshold import selection_auto_threshold, text_auto_threshold
     from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
     from repaint_nerf.core.select.selection import Selection
     from repaint_nerf.core.session import open_trained
@@ -111,8 +113,6 @@ def run(args: argparse.Namespace) -> int:
         from repaint_nerf.core.teachers.text import workspace_text_query
 
         sel.add_text(args.text, *workspace_text_query(scene, ws, args.clip_path))
-        from repaint_nerf.core.select.autothreshold import text_auto_threshold
-
         views = [cache.get(i) for i in range(len(cams))]
         sel.auto_threshold = text_auto_threshold([sel.similarity(m.feature).float().numpy() for m in views],
                                                  [m.opacity.numpy() > 0.5 for m in views])

@@ -173,9 +173,10 @@ def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarra
     values are constant."""
     from skimage.filters import threshold_otsu
 
-    vals = [np.asarray(s, np.float32)[np.asarray(m, bool)] if surfaces is not None else np.asarray(s, np.float32)
-            for s, m in zip(similarities, surfaces or [None] * len(similarities))]
-    v = np.concatenate([x.reshape(-1) for x in vals]) if vals else np.zeros(0, np.float32)
+    if surfaces is None:
+        surfaces = [np.ones(np.shape(s), bool) for s in similarities]
+    v = np.concatenate([np.asarray(s, np.float32)[np.asarray(m, bool)] for s, m in zip(similarities, surfaces)]
+                       + [np.zeros(0, np.float32)])
     v = v[np.isfinite(v)]
     if v.size < 2 or float(v.max() - v.min()) < 1e-6:
         return FALLBACK

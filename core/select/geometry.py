@@ -31,8 +31,7 @@ SPECK = 0.01  # a walled hole under 1% of its mask's area is depth noise, not a 
 CREASE = 0.25  # normals turning towards each other by ~15 degrees or more (2 sin(7.5 deg) = 0.26); a 90-degree
 # contact line scores ~-1, a plane 0 and a convex object > 0. LCCP's default concavity tolerance is 10 degrees.
 CONTINUOUS = 0.05  # inverse depth changing under 5% a pixel: one surface (a floor at a grazing angle ~1%)
-CREASE_SMOOTH = 0.0
-CREASE_MIN = 2.0
+CREASE_MIN = 2.0  # a crease component must span twice the band's width: a contact line is a line, not a speck
 CREASE_STEP = 2  # pixels each side: the band is ~2 * CREASE_STEP + 1 wide, wide enough to have no diagonal gap
 
 
@@ -84,11 +83,7 @@ def creases(depth: np.ndarray, surface: np.ndarray, intrinsics: tuple[float, flo
     (along a row or a column) turn towards each other by more than `tau` (module docstring)."""
     z = np.asarray(depth, np.float64)
     surface = np.asarray(surface, bool) & np.isfinite(z) & (z > 0)
-    z = np.where(surface, z, 1.0)
-    if CREASE_SMOOTH > 0:  # a trained field's depth is rough at the pixel scale; average within the surface
-        wsum = cv2.GaussianBlur(surface.astype(np.float64), (0, 0), CREASE_SMOOTH)
-        z = np.where(surface, cv2.GaussianBlur(z * surface, (0, 0), CREASE_SMOOTH) / np.maximum(wsum, 1e-9), 1.0)
-    pts = camera_points(z, *intrinsics)
+    pts = camera_points(np.where(surface, z, 1.0), *intrinsics)
     n = surface_normals(pts)
     # a normal is only read where the surface is continuous across its stencil: a 2-px pole in front of
     # the floor has no usable normal, and its outline is a depth edge already
@@ -107,13 +102,10 @@ def creases(depth: np.ndarray, surface: np.ndarray, intrinsics: tuple[float, flo
         out |= ok & (turn < -tau)
     b = step + 1  # rolled-in borders compare against the opposite side of the image
     out[:b], out[-b:], out[:, :b], out[:, -b:] = False, False, False, False
-    if CREASE_MIN > 0:  # a contact line is a line; specks of a rough surface are dropped
-        n_lab, lab, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
-        span = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT])
-        keep = span >= CREASE_MIN * (2 * step + 1)
-        keep[0] = False
-        out = keep[lab]
-    return out
+    _, lab, stats, _ = cv2.connectedComponentsWithStats(out.astype(np.uint8), connectivity=8)
+    keep = np.maximum(stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT]) >= CREASE_MIN * (2 * step + 1)
+    keep[0] = False  # the background label
+    return keep[lab]
 
 
 def join_band(mask: np.ndarray, band: np.ndarray) -> np.ndarray:
@@ -239,20 +231,27 @@ def project_seeds(points: np.ndarray, depth: np.ndarray, cameras, view: int, tol
     and its depth agrees with the view's rendered depth (not hidden behind another surface)."""
     import torch
 
-    h, w = depth.shape
-    out = np.zeros((h, w), bool)
+    out = np.zeros(depth.shape, bool)
     if not len(points):
         return out
     uv, z = cameras.project(torch.from_numpy(points).to(cameras.c2w), int(view))
-    uv, z = uv.cpu().numpy(), z.cpu().numpy()
-    front = (z > 0) & np.isfinite(uv).all(1)  # points behind the camera project nowhere
-    uv, z = uv[front], z[front]
-    u, v = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    u, v, z = u[ok], v[ok], z[ok]
-    seen = np.abs(depth[v, u] - z) < tol * z
+    seen, u, v = seen_pixels(uv.cpu().numpy(), z.cpu().numpy(), depth, tol)
     out[v[seen], u[seen]] = True
     return out
+
+
+def seen_pixels(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tol: float = SEED_DEPTH_TOL
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which of the points projected to pixels `uv` (P, 2) at depths `z` (P,) a view with z-depth map `depth`
+    sees: in front of the camera, inside the image, and at the depth the view renders there (not hidden
+    behind another surface). Returns (seen (P,) bool, u, v) with u, v clipped to the image where not seen."""
+    h, w = depth.shape
+    ok = (z > 0) & np.isfinite(uv).all(1)  # points behind the camera project nowhere
+    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v = np.where(ok, u, 0), np.where(ok, v, 0)
+    return ok & (np.abs(depth[v, u] - z) < tol * np.maximum(z, 1e-9)), u, v
 
 
 def _region(sim: np.ndarray, t: float, seeds: np.ndarray, barrier: np.ndarray, band: np.ndarray | None,
@@ -313,20 +312,15 @@ def vote(masks: list[np.ndarray], depths: list[np.ndarray], surface: list[np.nda
         pts = surface_points(m, depths[i], cameras, i)
         uv, z = cameras.project_views(torch.from_numpy(pts), torch.tensor(others))
         uv, z = uv.cpu().numpy(), z.cpu().numpy()
-        score = np.zeros(len(pts), np.int64)
+        pro = np.zeros(len(pts), np.int64)
         against = np.zeros(len(pts), np.int64)
         for k, j in enumerate(others):
-            h, w = masks[j].shape
-            ok = (z[k] > 0) & np.isfinite(uv[k]).all(1)
-            u = np.floor(np.where(ok, uv[k, :, 0], -1)).astype(np.int64)
-            v = np.floor(np.where(ok, uv[k, :, 1], -1)).astype(np.int64)
-            ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            uu, vv = np.where(ok, u, 0), np.where(ok, v, 0)
-            seen = ok & surface[j][vv, uu] & (np.abs(depths[j][vv, uu] - z[k]) < tol * np.maximum(z[k], 1e-9))
-            score += np.where(seen, np.where(masks[j][vv, uu], 1, -1), 0)
-            against += seen & ~masks[j][vv, uu]
+            seen, u, v = seen_pixels(uv[k], z[k], depths[j], tol)
+            seen &= surface[j][v, u]
+            pro += seen & masks[j][v, u]
+            against += seen & ~masks[j][v, u]
         keep = m.copy().reshape(-1)
-        keep[idx[(score <= 0) & (against > 0)]] = False
+        keep[idx[(against >= pro) & (against > 0)]] = False
         out.append(keep.reshape(m.shape))
     return out
 
