@@ -177,8 +177,16 @@ def test_selection_round_trip_in_workspace(tmp_path):
     assert path.parent == ws.selections_dir and not list(ws.selections_dir.glob("*.tmp"))
     back = Selection.load(ws)
     assert back.patches == sel.patches and back.threshold == 0.3 and back.cleanup is False
-    assert back.teacher == "default"
+    assert back.teacher == "default" and back.geometry == "basic"
     assert torch.equal(back.mask(f), sel.mask(f))
+    sel.geometry = "full"
+    sel.save(ws, "full")
+    assert Selection.load(ws, "full").geometry == "full"
+    sel.save(ws, "odd")
+    odd = ws.selections_dir / "odd.json"
+    odd.write_text(odd.read_text().replace('"full"', '"wobbly"'))
+    with pytest.raises(WorkspaceError, match="unknown geometry 'wobbly'"):
+        Selection.load(ws, "odd")
     (ws.selections_dir / "broken.json").write_text("{")
     with pytest.raises(WorkspaceError):
         Selection.load(ws, "broken")

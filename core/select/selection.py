@@ -106,6 +106,10 @@ class Selection:
     def from_dict(d: dict) -> "Selection":
         if d.get("format") != FORMAT_VERSION:
             raise ValueError(f"selection format {d.get('format')!r}, expected {FORMAT_VERSION}")
+        from repaint_nerf.core.select.geometry import GEOMETRY_NAMES
+
+        if d.get("geometry", "basic") not in GEOMETRY_NAMES:
+            raise ValueError(f"unknown geometry {d.get('geometry')!r}, expected one of {', '.join(GEOMETRY_NAMES)}")
         return Selection(patches=[Patch.from_dict(p) for p in d["patches"]],
                          positives=[torch.tensor(q, dtype=torch.float32) for q in d["positives"]],
                          negatives=[torch.tensor(q, dtype=torch.float32) for q in d["negatives"]],
