@@ -12,7 +12,7 @@ import dataclasses
 import importlib.util
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 import torch
@@ -45,6 +45,17 @@ def editor_train_config(device: torch.device) -> TrainConfig:
     if device.type == "cuda":
         return TrainConfig(grid_update_spread=True)
     return TrainConfig(rays_per_batch=1024, grid_resolution=64, max_samples=256, grid_update_spread=True)
+
+
+class FeatureView(NamedTuple):
+    """A rendered view's maps a patch selection reads: features (H, W, F), z-depth and opacity (H, W), and the
+    camera (field space) at the size they were rendered."""
+
+    key: tuple
+    feature: torch.Tensor
+    depth: np.ndarray
+    opacity: np.ndarray
+    camera: object
 
 
 @dataclasses.dataclass
@@ -84,7 +95,7 @@ class Engine:
         self.stage1_frozen = False  # after an edit, stage 1 would pull the field back to the photos
         self.last_info: dict = {}
         self.notes: list[str] = []
-        self._feature_cache: tuple | None = None  # (camera key, (H, W, F) tensor) of the newest render
+        self._feature_cache: FeatureView | None = None  # the newest render's feature map, depth and opacity
         self._text_query: tuple | None = None  # (workspace root, clip path, (teacher, codec)) for select_text
         self._saved_step = -1  # stage-1 step of the newest saved version
 
@@ -203,6 +214,8 @@ class Engine:
         want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
         if self.selection is not None and "feature" not in want and self.has_feature_head():
             want = want + ("feature",)
+        if "feature" in want:  # a patch drawn on this view needs its surface points (FeatureView)
+            want = want + tuple(o for o in ("depth", "opacity") if o not in want)
         capped = not full and scale >= self._max_scale(cameras)
         if capped:
             scale = self._max_scale(cameras)
@@ -221,7 +234,10 @@ class Engine:
         if out is None:
             return None
         if "feature" in out:
-            self._feature_cache = (self._camera_key(cameras), out["feature"].float().cpu())
+            cam = cameras.to("cpu")[0]
+            self._feature_cache = FeatureView(self._camera_key(cameras), out["feature"].float().cpu(),
+                                              _np(out["depth"]), _np(out["opacity"]),
+                                              cam if scale == 1.0 else cam.scaled(scale))
         result: dict = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
         result["capped"] = capped  # the finest render this view gets: the viewport needs no refinement
         if self.selection is not None and "feature" in out:
@@ -235,30 +251,35 @@ class Engine:
                 int(c.width[0]), int(c.height[0]))
 
     # ---- selection
-    def _features_for(self, cameras) -> torch.Tensor:
-        if self._feature_cache is not None and self._feature_cache[0] == self._camera_key(cameras):
-            return self._feature_cache[1]
+    def _feature_view(self, cameras) -> "FeatureView":
+        if self._feature_cache is not None and self._feature_cache.key == self._camera_key(cameras):
+            return self._feature_cache
         side = max(int(cameras.width[0]), int(cameras.height[0]))
         self.render(cameras, scale=min(1.0, 256.0 / side), outputs=("feature",))
-        return self._feature_cache[1]
+        return self._feature_cache
 
     def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> PatchSelected:
         """Add ('new', 'add') or subtract ('sub') the mean feature of `patch` (x0, y0, x1, y1 in [0, 1]) of this
-        view, using the newest rendered feature map of this camera. Returns the view's similarity map."""
+        view, using the newest rendered feature map of this camera. Returns the view's similarity map.
+
+        A positive patch also keeps its surface points (Selection.anchors): this camera is not a training view,
+        and the points seed the training views' masks, so the field's geometry shapes them as it does `select`'s."""
         self._need_scene()
         self._need_feature_head()
-        feat = self._features_for(cameras)
+        view = self._feature_view(cameras)
         if self.selection is None or mode == "new":
-            self.selection = Selection(teacher=str(self.workspace.settings.get("teacher", "default")),
-                                           cleanup=False)  # a free view has no training-view seed for 3D clean-up
-        self.selection.add_patch(feat, patch, subtract=(mode == "sub"))
+            self.selection = Selection(teacher=str(self.workspace.settings.get("teacher", "default")))
+        self.selection.add_patch(view.feature, patch, subtract=(mode == "sub"))
         self.masks = None
-        similarity = _np(self.selection.similarity(feat))
+        similarity = _np(self.selection.similarity(view.feature))
         auto = None
         if mode != "sub":  # saved with the selection, and the editor's slider starts at it
-            from repaint_nerf.core.select.autothreshold import patch_auto_threshold
+            from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
+            from repaint_nerf.core.select.geometry import patch_anchors
 
-            auto = self.selection.auto_threshold = patch_auto_threshold(similarity, patch)
+            auto = self.selection.auto_threshold = patch_auto_threshold(similarity, patch, view.depth, view.opacity)
+            self.selection.add_anchors(patch_anchors(patch_pixels(similarity.shape, patch), similarity, view.depth,
+                                                     view.opacity, view.camera, auto))
         return PatchSelected(similarity, auto)
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:
@@ -271,7 +292,7 @@ class Engine:
                             hint="subtract with a patch (ctrl-drag) instead")
         self._need_feature_head()
         teacher, codec = self._text_teacher(clip_path)
-        feat = self._features_for(cameras)
+        feat = self._feature_view(cameras).feature
         selection = self.selection if self.selection is not None and mode == "add" else \
             Selection(teacher=str(self.workspace.settings.get("teacher", "default")), cleanup=False)
         selection.add_text(text, teacher, codec)

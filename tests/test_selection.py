@@ -180,8 +180,14 @@ def test_selection_round_trip_in_workspace(tmp_path):
     assert back.teacher == "default" and back.geometry == "basic"
     assert torch.equal(back.mask(f), sel.mask(f))
     sel.geometry = "full"
+    sel.add_anchors(np.array([[0.1, -0.2, 0.3], [0.4, 0.5, -0.6]], np.float32))
     sel.save(ws, "full")
-    assert Selection.load(ws, "full").geometry == "full"
+    back = Selection.load(ws, "full")
+    assert back.geometry == "full" and np.allclose(back.anchor_points(), sel.anchor_points(), atol=1e-5)
+    bad = ws.selections_dir / "bad_anchor.json"
+    bad.write_text(json.dumps({**json.loads((ws.selections_dir / "full.json").read_text()), "anchors": [[1, 2]]}))
+    with pytest.raises(WorkspaceError, match="anchor"):
+        Selection.load(ws, "bad_anchor")
     sel.save(ws, "odd")
     odd = ws.selections_dir / "odd.json"
     odd.write_text(odd.read_text().replace('"full"', '"wobbly"'))
@@ -280,6 +286,77 @@ def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
     assert iou(clean, gts) > 0.85  # the 3D clean-up keeps only the patch's ball
     saved = load_masks(ws.masks_dir)
     assert all(np.array_equal(a, b) for a, b in zip(saved, clean))
+
+
+def test_a_free_view_patch_seeds_the_training_views(tmp_path):
+    """The editor's patch is drawn in a camera that is not a training view: its surface points (anchors) carry it
+    into the training views, so the 3D clean-up drops the look-alike there too; without them nothing is seeded."""
+    from repaint_nerf.core.render.renderer import RenderOptions
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.select.autothreshold import patch_pixels
+    from repaint_nerf.core.select.geometry import patch_anchors
+    from repaint_nerf.core.select.masks import render_view_maps
+
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cams = _ring_cameras()
+    f = 0.5 * 48 / math.tan(0.45)
+    free = Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, 24, 24, 48, 48)  # between ring views
+    opts = RenderOptions(max_samples=96)
+    fm = render_view_maps(field, None, free, 0, opts)
+    gt = _ball_gt(free, 0, centers[0], 0.22).numpy()
+    ys, xs = np.nonzero(gt)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    patch = Patch(-1, cx - 2, cy - 2, cx + 3, cy + 3)
+    sel = Selection(threshold=0.5)
+    sel.add_patch(fm.feature, patch)
+    sim = sel.similarity(fm.feature).numpy()
+    pts = patch_anchors(patch_pixels(sim.shape, patch), sim, fm.depth.numpy(), fm.opacity.numpy(), free, 0.5)
+    assert len(pts) and np.abs(np.linalg.norm(pts - np.array(centers[0]), axis=1) - 0.22).max() < 0.05  # on ball 0
+    cache = ViewCache(field, None, cams, render_opts=opts)
+    unseeded = masks_for_views(field, None, cams, sel, cleanup=True, cache=cache)
+    sel.add_anchors(pts)
+    seeded = masks_for_views(field, None, cams, sel, cleanup=True, cache=cache)
+
+    def iou(ms, gts):
+        inter = sum(int((m & g).sum()) for m, g in zip(ms, gts))
+        return inter / max(1, sum(int((m | g).sum()) for m, g in zip(ms, gts)))
+
+    gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(len(cams))]
+    both = [g | _ball_gt(cams, i, centers[1], 0.22).numpy() for i, g in enumerate(gts)]
+    assert iou(unseeded, both) > 0.85 and iou(unseeded, gts) < 0.75  # no seed: the look-alike stays
+    assert iou(seeded, gts) > 0.85
+
+
+def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_path):
+    """Engine.select in a free camera keeps the patch's surface points, and the masks it then applies to the
+    training views (what the repaint reads) leave out the look-alike ball."""
+    from types import SimpleNamespace
+
+    from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+
+    eng = Engine("cpu")
+    eng.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    eng.field, eng.grid = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]]), None
+    eng.field.cfg = SimpleNamespace(feature_dim=3)
+    f = 0.5 * 48 / math.tan(0.45)
+    free = Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, 24, 24, 48, 48)
+    ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
+    cy, cx = np.median(ys) / 48, np.median(xs) / 48
+    eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05))
+    pts = eng.selection.anchor_points()
+    assert eng.selection.cleanup and len(pts)
+    assert np.abs(np.linalg.norm(pts - np.array(centers[0]), axis=1) - 0.22).max() < 0.05
+    assert eng.masks_for_all_views(0.5) == 6
+    cams = eng.scene.field_cameras("train").to("cpu")
+    gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(6)]
+    look_alike = [_ball_gt(cams, i, centers[1], 0.22).numpy() & ~g for i, g in enumerate(gts)]
+    assert sum(int(g.sum()) for g in look_alike) > 20  # the training views do see the look-alike
+    assert sum(int((m & a).sum()) for m, a in zip(eng.masks, look_alike)) == 0
+    assert sum(int((m & g).sum()) for m, g in zip(eng.masks, gts)) > 0.85 * sum(int(g.sum()) for g in gts)
+    assert len(Selection.load(eng.workspace).anchors) == len(pts)
 
 
 # -- end to end on a tiny trained scene -----------------------------------------------------------

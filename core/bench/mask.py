@@ -144,6 +144,7 @@ class Evaluator:
 
     def masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: test masks (numpy bool)}, test similarity maps)."""
+        from repaint_nerf.core.select.autothreshold import patch_pixels
         from repaint_nerf.core.select.masks import shaped_masks
 
         pm = self.train_maps(patch.view)
@@ -153,7 +154,8 @@ class Evaluator:
         cams = _cat_cameras(self.test_cams.to("cpu"), self.train_cams[patch.view].to("cpu"))
         local = type(patch)(n, patch.x0, patch.y0, patch.x1, patch.y1)
         all_sims, maps = sims + [sel.similarity(pm.feature)], self.test + [pm]
-        out = {t: shaped_masks(all_sims, maps, cams, [(n, local)], t, parts)[:n] for t in thresholds}
+        seeds = [(n, patch_pixels(tuple(pm.depth.shape), local))]
+        out = {t: shaped_masks(all_sims, maps, cams, seeds, t, parts)[:n] for t in thresholds}
         return out, sims
 
 

@@ -48,8 +48,8 @@ def cleanup_masks(masks: list[Tensor], depths: list[Tensor], opacities: list[Ten
                   bridge: int = 1) -> list[Tensor]:
     """Masks with pixels not 3D-connected to the seed patches removed (see the module docstring).
 
-    `seeds` are (view, patch) pairs with pixel rectangles (x0, y0, x1, y1); with no seed or no masked
-    surface point the masks come back unchanged.
+    `seeds` are (view, bool (H, W)) pixels the user marked (a patch, or a free-view patch's points carried into
+    the view); with no seed or no masked surface point the masks come back unchanged.
     """
     cams = cameras.to("cpu")
     pts, flat_idx, footprint = [], [], []
@@ -62,11 +62,9 @@ def cleanup_masks(masks: list[Tensor], depths: list[Tensor], opacities: list[Ten
             footprint.append(dep.reshape(-1)[idx].float().cpu() / float(cams.fx[i]))
     allp = torch.cat(pts)
     seed_pts = []
-    for view, p in seeds:
+    for view, px in seeds:
         dep, op = depths[view].cpu().float(), opacities[view].cpu()
-        sub = torch.zeros_like(op, dtype=torch.bool)
-        sub[p.y0:p.y1, p.x0:p.x1] = True
-        sub &= (op > min_opacity) & masks[view].cpu()
+        sub = torch.as_tensor(px, dtype=torch.bool) & (op > min_opacity) & masks[view].cpu()
         if sub.any():
             seed_pts.append(backproject(dep, cams, view)[sub.reshape(-1)])
     if allp.shape[0] == 0 or not seed_pts:

@@ -254,6 +254,35 @@ def seen_pixels(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tol: float = S
     return ok & (np.abs(depth[v, u] - z) < tol * np.maximum(z, 1e-9)), u, v
 
 
+MAX_ANCHORS = 512  # surface points kept from a free-view patch (a saved selection holds them)
+
+
+def patch_anchors(patch_px: np.ndarray, similarity: np.ndarray, depth: np.ndarray, opacity: np.ndarray, cameras,
+                  threshold: float, rng_seed: int = 0) -> np.ndarray:
+    """Field-space surface points (N, 3) of a patch drawn in a view that is not a training view (the editor's free
+    camera, `cameras` holding that one view at the maps' size): the patch's pixels on the object (similarity above
+    `threshold`, opaque, off depth edges and away from the object's border), at most `MAX_ANCHORS` of them.
+    `anchor_seeds` carries them into the training views, where they seed the geometry as a training-view patch does."""
+    depth = np.asarray(depth, np.float32)
+    opacity = np.asarray(opacity, np.float32)
+    on = np.asarray(patch_px, bool) & (np.asarray(similarity) > threshold) & (opacity > MIN_OPACITY)
+    on &= ~depth_edges(depth, opacity)
+    pts = surface_points(_interior(on), depth, cameras, 0)
+    if len(pts) > MAX_ANCHORS:
+        pts = pts[np.random.default_rng(rng_seed).choice(len(pts), MAX_ANCHORS, replace=False)]
+    return pts
+
+
+def anchor_seeds(points: np.ndarray, depths: list[np.ndarray], cameras) -> list[tuple[int, np.ndarray]]:
+    """(view, bool (H, W) pixels) of every view of `cameras` that sees one of `points` (`project_seeds`)."""
+    out = []
+    for i, d in enumerate(depths):
+        px = project_seeds(np.asarray(points, np.float32), np.asarray(d, np.float32), cameras, i)
+        if px.any():
+            out.append((i, px))
+    return out
+
+
 def _region(sim: np.ndarray, t: float, seeds: np.ndarray, barrier: np.ndarray, band: np.ndarray | None,
             depth: np.ndarray, parts: GeometryParts) -> np.ndarray:
     region = grow(sim > t, seeds, barrier)

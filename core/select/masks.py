@@ -142,8 +142,8 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
         if progress:
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
-    seeds = [(p.view, p) for p in selection.patches if p.positive and 0 <= p.view < n]
-    parts = (parts or parts_named(getattr(selection, "geometry", "basic"))) if do_cleanup and seeds else GeometryParts.none()
+    seeds = selection_seeds(selection, maps, cameras) if do_cleanup else []
+    parts = (parts or parts_named(getattr(selection, "geometry", "basic"))) if seeds else GeometryParts.none()
     out = shaped_masks(sims, maps, cameras, seeds, t, parts)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
@@ -153,20 +153,34 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     return out
 
 
+def selection_seeds(selection, maps: list[ViewMaps], cameras) -> list[tuple[int, np.ndarray]]:
+    """(view, bool (H, W)) seed pixels of a selection in the views of `cameras`: its positive patches drawn in
+    those views, and the surface points of patches drawn elsewhere (the editor's free camera) where a view
+    sees them (core.select.geometry.anchor_seeds)."""
+    from repaint_nerf.core.select.autothreshold import patch_pixels
+    from repaint_nerf.core.select.geometry import anchor_seeds
+
+    n = len(maps)
+    seeds = [(p.view, patch_pixels(tuple(maps[p.view].depth.shape), p)) for p in selection.patches
+             if p.positive and 0 <= p.view < n]
+    anchors = selection.anchor_points()
+    if len(anchors):
+        seeds += anchor_seeds(anchors, [m.depth.numpy() for m in maps], cameras.to("cpu"))
+    return seeds
+
+
 def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list, threshold: float,
                  parts) -> list[np.ndarray]:
     """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
-    patches [(view, Patch)]; the one path the CLI, the editor and bench mask share."""
-    from repaint_nerf.core.select.autothreshold import patch_pixels
+    pixels [(view, bool (H, W))] (`selection_seeds`); the one path the CLI, the editor and bench mask share."""
     from repaint_nerf.core.select.cleanup3d import cleanup_masks
     from repaint_nerf.core.select.geometry import geometric_masks
 
     cams = cameras.to("cpu")
     if parts.edges or parts.grow or parts.holes:
-        px = [(v, patch_pixels(tuple(sims[v].shape), p)) for v, p in seeds]
         masks = [torch.from_numpy(m) for m in geometric_masks(
             [s.float().cpu().numpy() for s in sims], [m.depth.numpy() for m in maps],
-            [m.opacity.numpy() for m in maps], cams, px, threshold, parts)]
+            [m.opacity.numpy() for m in maps], cams, seeds, threshold, parts)]
     else:
         masks = [s.cpu() > threshold for s in sims]
     if parts.cleanup3d and seeds:

@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -32,6 +33,7 @@ class Selection:
     cleanup: bool = True
     geometry: str = "basic"  # the geometry parts of the masks: 'basic' or 'full' (core.select.geometry.parts_named)
     auto_threshold: float | None = None  # the automatic threshold of the queries (core.select.autothreshold)
+    anchors: list[list[float]] = field(default_factory=list)  # field-space surface points of free-view patches
     teacher: str = ""
     created: float = field(default_factory=time.time)
 
@@ -51,6 +53,15 @@ class Selection:
         (self.positives if p.positive else self.negatives).append(q.cpu())
         self.patches.append(p)
         return p
+
+    def add_anchors(self, points) -> None:
+        """Keep the field-space surface points (N, 3) of a positive patch drawn outside the training views
+        (core.select.geometry.patch_anchors): they seed the training views' masks as a training-view patch does."""
+        self.anchors.extend([round(float(x), 5) for x in p] for p in np.asarray(points, np.float32).reshape(-1, 3))
+
+    def anchor_points(self) -> np.ndarray:
+        """The anchors as a float32 (N, 3) array."""
+        return np.asarray(self.anchors, np.float32).reshape(-1, 3)
 
     def add_text(self, text: str, teacher, codec=None) -> None:
         """Add a text query through a teacher with a CLIP-aligned text encoder (see query.text_query)."""
@@ -98,7 +109,7 @@ class Selection:
                 "geometry": self.geometry,
                 "auto_threshold": None if self.auto_threshold is None else float(self.auto_threshold),
                 "teacher": self.teacher, "created": self.created, "texts": list(self.texts),
-                "patches": [p.to_dict() for p in self.patches],
+                "patches": [p.to_dict() for p in self.patches], "anchors": self.anchors,
                 "positives": [q.float().tolist() for q in self.positives],
                 "negatives": [q.float().tolist() for q in self.negatives]}
 
@@ -107,6 +118,10 @@ class Selection:
         if d.get("format") != FORMAT_VERSION:
             raise ValueError(f"selection format {d.get('format')!r}, expected {FORMAT_VERSION}")
         from repaint_nerf.core.select.geometry import GEOMETRY_NAMES
+
+        anchors = [[float(x) for x in p] for p in d.get("anchors", [])]
+        if any(len(p) != 3 for p in anchors):
+            raise ValueError("an anchor point is not three numbers")
 
         if d.get("geometry", "basic") not in GEOMETRY_NAMES:
             raise ValueError(f"unknown geometry {d.get('geometry')!r}, expected one of {', '.join(GEOMETRY_NAMES)}")
@@ -118,6 +133,7 @@ class Selection:
                          teacher=str(d.get("teacher", "")),
                          auto_threshold=None if d.get("auto_threshold") is None
                          else check_threshold(d["auto_threshold"]),
+                         anchors=anchors,
                          created=float(d.get("created", 0.0)))
 
     def save(self, workspace, name: str = "current") -> Path:
