@@ -38,6 +38,7 @@ class EditorState:
     has_selection: bool = False
     selection_busy: bool = False
     masks_done: int | None = None
+    use_geometry: bool = True  # the field's geometry shapes the applied masks ('full'), else the voxel clean-up only
     text_query: str = ""  # "Select by text" (needs a CLIP-aligned teacher and clip_path)
     prompt: str = ""
     bg_prompt: str = ""

@@ -312,11 +312,17 @@ class Engine:
         self.selection = None
         self.masks = None
 
-    def masks_for_all_views(self, threshold: float) -> int:
-        """Compute and save the selection's mask for every training view (what the repaint uses); returns the count."""
+    def masks_for_all_views(self, threshold: float, geometry: str | None = None) -> int:
+        """Compute and save the selection's mask for every training view (what the repaint uses); returns the count.
+        `geometry`: 'full' or 'basic' (core.select.geometry.parts_named; None: the selection's)."""
         self._need_scene()
         if self.selection is None:
             raise UserError("nothing is selected", hint="drag a rectangle over an object in the viewport first")
+        if geometry is not None:
+            from repaint_nerf.core.select.geometry import parts_named
+
+            parts_named(geometry)  # an unknown name is a UserError
+            self.selection.geometry = geometry
         from repaint_nerf.core.teachers.sam_refine import workspace_refiner  # the workspace's SAM choice (select --sam-path)
 
         self.selection.threshold = check_threshold(threshold)

@@ -86,6 +86,29 @@ def test_depth_edges_mark_the_far_side_of_a_step_and_not_a_grazing_plane():
     assert e[19, 25] and e[40, 25] and e[30, 19] and e[30, 44]
 
 
+def test_rough_depth_turns_the_2d_geometry_off_and_clean_depth_keeps_it():
+    from repaint_nerf.core.select.geometry import DEPTH_EDGE, FULL_PARTS, depth_noise, fit_parts
+
+    h, w, f = 64, 64, 80.0
+    cams = Cameras.create(look_at((0.0, -3.0, 1.2), (0.0, 0.0, 0.0))[None], f, f, w / 2, h / 2, w, h)
+    o, d, dz = cams.image_rays(0)
+    plane = ((-o[:, 2] / d[:, 2]) * dz).reshape(h, w).numpy().astype(np.float64)
+    ones = np.ones((h, w), bool)
+    assert depth_noise(1.0 / plane, ones) < 1e-6  # inverse depth is affine on a plane
+    rng = np.random.default_rng(0)
+    for sigma in (0.004, 0.02):  # multiplicative noise: the second difference's sigma is sqrt(6) sigma
+        rough = plane * np.exp(rng.normal(0, sigma, plane.shape))
+        assert depth_noise(1.0 / rough, ones) == pytest.approx(np.sqrt(6) * sigma, rel=0.15)
+    ops = [np.ones((h, w), np.float32)]
+    assert fit_parts(FULL_PARTS, [plane], ops) == FULL_PARTS
+    quiet = plane * np.exp(rng.normal(0, 0.25 * DEPTH_EDGE / np.sqrt(6), plane.shape))
+    assert fit_parts(FULL_PARTS, [quiet], ops) == FULL_PARTS
+    rough = plane * np.exp(rng.normal(0, 2.0 * DEPTH_EDGE / np.sqrt(6), plane.shape))
+    assert depth_edges(rough).mean() > 0.2  # on such depth a quarter of the pixels look like edges
+    kept = fit_parts(FULL_PARTS, [rough], ops)
+    assert kept.names() == ["cleanup3d"]
+
+
 def test_fill_holes_keeps_holes_with_a_barrier():
     m = np.zeros((20, 20), bool)
     m[2:18, 2:18] = True

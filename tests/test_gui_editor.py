@@ -37,6 +37,7 @@ class AnalyticEngine:
         self.renders = 0
         self.render_delay = 0.0
         self.text_calls: list = []
+        self.mask_calls: list = []
         self.repaint_calls: list[dict] = []
 
     def capabilities(self):
@@ -117,7 +118,12 @@ class AnalyticEngine:
     def clear_selection(self):
         self.query = None
 
-    def masks_for_all_views(self, threshold):
+    def masks_for_all_views(self, *args, **kwargs):
+        from repaint_nerf.core.engine import Engine
+
+        call = inspect.signature(Engine.masks_for_all_views).bind(self, *args, **kwargs)  # the real signature
+        call.apply_defaults()
+        self.mask_calls.append((call.arguments["threshold"], call.arguments["geometry"]))
         return 8
 
     def repaint(self, *args, **kwargs):
@@ -281,6 +287,12 @@ def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, 
         areas.append(int((np.abs(view_pixels(editor, shot) - rgb_only).sum(-1) > 30).sum()))
     assert areas == sorted(areas) and areas[0] < areas[-1], areas
     editor.state.threshold = 0.5
+    click(editor, "apply_all")  # the field's geometry is on by default; the checkbox turns it off
+    click(editor, "use_geometry")
+    click(editor, "apply_all")
+    run_until(editor, lambda: len(editor.engine.mask_calls) == 2)
+    assert editor.engine.mask_calls == [(0.5, "full"), (0.5, "basic")]
+    editor.state.use_geometry = True
     editor.state.tool = "navigate"
 
 

@@ -177,9 +177,11 @@ def test_selection_round_trip_in_workspace(tmp_path):
     assert path.parent == ws.selections_dir and not list(ws.selections_dir.glob("*.tmp"))
     back = Selection.load(ws)
     assert back.patches == sel.patches and back.threshold == 0.3 and back.cleanup is False
-    assert back.teacher == "default" and back.geometry == "basic"
+    assert back.teacher == "default" and back.geometry == "full"  # the default
     assert torch.equal(back.mask(f), sel.mask(f))
-    sel.geometry = "full"
+    old = ws.selections_dir / "old.json"  # saved before the choice existed: the clean-up it was made with
+    old.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k != "geometry"}))
+    assert Selection.load(ws, "old").geometry == "basic"
     sel.add_anchors(np.array([[0.1, -0.2, 0.3], [0.4, 0.5, -0.6]], np.float32))
     sel.save(ws, "full")
     back = Selection.load(ws, "full")
@@ -357,6 +359,9 @@ def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_p
     assert sum(int((m & a).sum()) for m, a in zip(eng.masks, look_alike)) == 0
     assert sum(int((m & g).sum()) for m, g in zip(eng.masks, gts)) > 0.85 * sum(int(g.sum()) for g in gts)
     assert len(Selection.load(eng.workspace).anchors) == len(pts)
+    with pytest.raises(UserError, match="unknown selection geometry"):
+        eng.masks_for_all_views(0.5, "wobbly")
+    assert eng.masks_for_all_views(0.5, "basic") == 6 and Selection.load(eng.workspace).geometry == "basic"
 
 
 # -- end to end on a tiny trained scene -----------------------------------------------------------
@@ -449,7 +454,9 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
     assert main(["select", str(ws.root), "--view", str(p.view), "--patch", f"{p.x0},{p.y0},{p.x1},{p.y1}",
                  "--out", str(tmp_path / "full"), "--geometry", "full"]) == 0
     index = json.loads((ws.masks_dir / "index.json").read_text())
-    assert set(index["geometry"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote"}
+    # this 32-px field's depth is too rough for the 2D parts (fit_parts): asked for, and left out
+    assert set(index["geometry_asked"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote"}
+    assert index["geometry"] == ["cleanup3d"]
     assert Selection.load(ws).geometry == "full"  # saved with the selection, so a later mask pass uses it too
     assert len(load_masks(tmp_path / "full")) == len(scene.train)
 

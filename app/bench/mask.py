@@ -103,5 +103,6 @@ def line(name: str, res: dict) -> str:
     return (f"{name:9s} iou={f['iou']:.3f} at auto {f['auto_threshold']:.2f} | fixed 0.5 {f['iou_fixed']:.3f} | "
             f"best {f['best_iou']:.3f}@{f['best_threshold']:.2f} | no geometry {f['no_geometry']['iou']:.3f} "
             f"(best {f['no_geometry']['best_iou']:.3f}) | before {f['iou_before']:.3f} | {parts} | "
+            f"editor's way {f['editor']['iou']:.3f} (no geometry {f['editor']['iou_no_geometry']:.3f}) | "
             f"step {res['curve'][-1]['step']} ({res['curve'][-1]['seconds']:.0f} s), "
             f"{res['patch_to_mask_ms']:.1f} ms patch->mask ({res['auto_threshold_ms']:.1f} auto)")

@@ -13,7 +13,7 @@ HELP = ("select an object by a patch in one training view (or by text with a CLI
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from repaint_nerf.core.select.geometry import GEOMETRY_NAMES
+    from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY, GEOMETRY_NAMES
 
     p.add_argument("workspace", help="workspace folder trained with a feature head (repaint-nerf train)")
     p.add_argument("--view", type=int, default=None, help="training view index the patches are drawn in")
@@ -37,10 +37,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "similarity and the field's depth edges in its view; for a text query, Otsu's split of the "
                         "similarities over every view)")
     p.add_argument("--no-cleanup", action="store_true", help="skip the 3D clean-up (keep every pixel above threshold)")
-    p.add_argument("--geometry", choices=GEOMETRY_NAMES, default="basic",
-                   help="the field's geometry in the masks: 'basic' = the voxel 3D clean-up; 'full' adds depth "
-                        "edges, concave creases (contact lines), growth from the patch carried between views, the "
-                        "views' vote and hole filling: for objects resting on or touching look-alikes")
+    p.add_argument("--geometry", choices=GEOMETRY_NAMES, default=DEFAULT_GEOMETRY,
+                   help="the field's geometry in the masks: 'basic' = the voxel 3D clean-up; 'full' (default) adds "
+                        "depth edges, concave creases (contact lines), growth from the patch carried between views, "
+                        "the views' vote and hole filling, for objects resting on or touching look-alikes, where the "
+                        "field's depth is smooth enough to tell a step (else the clean-up only; see masks/index.json)")
     p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 
@@ -85,6 +86,7 @@ def _describe(args, patches: list) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    import json
     import time
 
     import numpy as np
@@ -138,8 +140,9 @@ def run(args: argparse.Namespace) -> int:
     atomic.write_json(sel_copy, sel.to_dict())
     cover = np.mean([m.mean() for m in masks])
     how = "automatic" if args.threshold is None and sel.auto_threshold is not None else "given"
-    print(f"{_describe(args, patches)}, threshold {threshold:.2f} ({how}), 3D clean-up "
-          f"{'on' if sel.cleanup else 'off'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering "
+    used = json.loads((ws.masks_dir / "index.json").read_text(encoding="utf-8")).get("geometry") or []
+    print(f"{_describe(args, patches)}, threshold {threshold:.2f} ({how}), geometry "
+          f"{', '.join(used) or 'none'}{', SAM-refined' if refine else ''}: {len(masks)} masks covering "
           f"{100 * cover:.1f}% of pixels on average "
           f"({time.perf_counter() - t0:.1f} s)")
     print(f"wrote {out} (mask_0000.png ...), {ws.masks_dir} and {sel_path}")

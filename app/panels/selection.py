@@ -35,11 +35,18 @@ def draw(app) -> None:
     if not s.has_selection:
         imgui.text("nothing selected")
         return
+    _, s.use_geometry = imgui.checkbox("Masks follow the field's depth", s.use_geometry)  # its own line: 400-px panel
+    remember_item(app, "use_geometry")
+    if imgui.is_item_hovered():
+        imgui.set_tooltip("shape the masks with the field's geometry: stop at depth edges and at the crease where "
+                          "an object rests on its support, and let the views outvote each other's leaks (off: only "
+                          "drop what is not connected to the patch in 3D)")
     if imgui.button("Clear selection"):
         app.clear_selection()
     imgui.same_line()
     if imgui.button("Apply to all views"):
-        app.call(app.engine.masks_for_all_views, float(s.threshold))
+        app.call(app.engine.masks_for_all_views, float(s.threshold), "full" if s.use_geometry else "basic")
+    remember_item(app, "apply_all")
     if s.masks_done is not None:
         imgui.text(f"masks for {s.masks_done} views saved")
 

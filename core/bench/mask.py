@@ -79,7 +79,8 @@ def summarize(results: dict) -> dict:
                       "max_auto_gap": max(f["auto_gap"] for f in finals.values()),
                       "min_iou_fixed": min(f["iou_fixed"] for f in finals.values()),
                       "min_iou_no_geometry": min(f["no_geometry"]["iou"] for f in finals.values()),
-                      "min_iou_before": min(f["iou_before"] for f in finals.values())},
+                      "min_iou_before": min(f["iou_before"] for f in finals.values()),
+                      "min_editor_iou": min(f["editor"]["iou"] for f in finals.values())},
             "patch_to_mask_ms": float(np.median([r["patch_to_mask_ms"] for r in results.values()])),
             "feature_mb_per_image": float(np.mean([r["feature_mb_per_image"] for r in results.values()]))}
 
@@ -159,6 +160,52 @@ class Evaluator:
         return out, sims
 
 
+    def editor_masks(self, view: int, rect, parts) -> tuple[list[np.ndarray], float]:
+        """The editor's way, in test views only: a patch `rect` (a Patch) drawn in test view `view` as in a free
+        camera (not a training view: its surface points seed the others, Engine.select), masks of the other test
+        views at the patch's automatic threshold. Returns (masks of the other views, the threshold)."""
+        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
+        from repaint_nerf.core.select.geometry import patch_anchors
+        from repaint_nerf.core.select.masks import selection_seeds, shaped_masks
+        from repaint_nerf.core.select.selection import Selection
+
+        m = self.test[view]
+        sel = Selection()
+        sel.add_patch(m.feature, rect)
+        sim = sel.similarity(m.feature).float().numpy()
+        auto = patch_auto_threshold(sim, rect, m.depth, m.opacity)
+        cams = self.test_cams.to("cpu")
+        sel.add_anchors(patch_anchors(patch_pixels(sim.shape, rect), sim, m.depth.numpy(), m.opacity.numpy(),
+                                      cams[view], auto))
+        others = [i for i in range(len(self.test)) if i != view]
+        maps, oc = [self.test[i] for i in others], cams[torch.tensor(others)]
+        sims = [sel.similarity(v.feature) for v in maps]
+        return shaped_masks(sims, maps, oc, selection_seeds(sel, maps, oc), auto, parts), auto
+
+
+def default_parts(ev: Evaluator):
+    """What a selection's default geometry gives on this field: the default parts, fitted to its depth (fit_parts)."""
+    from repaint_nerf.core.select.geometry import fit_parts
+
+    return fit_parts(parts_variants()["default"], [m.depth.numpy() for m in ev.test],
+                     [m.opacity.numpy() for m in ev.test])
+
+
+def editor_iou(ev: Evaluator, gts: list[np.ndarray]) -> dict:
+    """IoU of the editor's way (`Evaluator.editor_masks`) with the patch in the test view where the object is
+    seen largest, before (no geometry: the editor had no training-view seed) and with the default parts."""
+    from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.select.geometry import GeometryParts
+    from repaint_nerf.core.select.query import Patch
+
+    view, (y0, y1, x0, x1) = place_patch(gts)
+    rect = Patch(-1, x0, y0, x1, y1)
+    others = [g for i, g in enumerate(gts) if i != view]
+    masks, auto = ev.editor_masks(view, rect, default_parts(ev))
+    plain, _ = ev.editor_masks(view, rect, GeometryParts.none())
+    return {"iou": iou(masks, others), "iou_no_geometry": iou(plain, others), "view": view, "auto_threshold": auto}
+
+
 def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
     """The final figures of one field and patch: IoU at the automatic threshold (default geometry parts), at
     the fixed 0.5, at the best of a sweep, without geometry, without each part, and as before this
@@ -166,6 +213,7 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
     from repaint_nerf.core.select.geometry import GeometryParts
 
     variants = parts_variants()
+    variants["default"] = default_parts(ev)
     auto = ev.auto_threshold(patch)
     ts = tuple(sorted(set(THRESHOLDS) | {FIXED, auto}))
     full, _ = ev.masks(patch, ts, variants["default"])
@@ -186,7 +234,8 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray]) -> dict:
             "no_geometry": {"iou": plain_t[auto], "iou_fixed": plain_t[FIXED], "best_iou": plain_t[best_plain],
                             "best_threshold": best_plain,
                             "iou_by_threshold": {f"{t:.2f}": plain_t[t] for t in THRESHOLDS}},
-            "parts": parts, "iou_before": iou(before[FIXED], gts), "masks": full[auto]}
+            "parts": parts, "default_parts": variants["default"].names(), "editor": editor_iou(ev, gts),
+            "iou_before": iou(before[FIXED], gts), "masks": full[auto]}
 
 
 def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None) -> tuple[dict, np.ndarray]:
@@ -246,7 +295,7 @@ def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None
         for o in objects:
             g = [t == o for t in test_gt]
             auto = ev.auto_threshold(patches[o])
-            m3, _ = ev.masks(patches[o], (auto,), parts_variants()["default"])
+            m3, _ = ev.masks(patches[o], (auto,), default_parts(ev))
             m2, _ = ev.masks(patches[o], (auto,), GeometryParts.none())
             final["objects"][str(o)] = {"iou": iou(m3[auto], g), "iou_no_geometry": iou(m2[auto], g),
                                         "auto_threshold": auto}
@@ -294,7 +343,7 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
         trainer.field.eval()
         ev = Evaluator(trainer.field, trainer.grid, train_cams, test_cams)
         auto = ev.auto_threshold(patch)
-        m3, _ = ev.masks(patch, (auto,), variants["default"])
+        m3, _ = ev.masks(patch, (auto,), default_parts(ev))
         m2, _ = ev.masks(patch, (auto,), variants["none"])
         trainer.field.train()
         curve.append({"step": trainer.step_count, "seconds": trainer.train_seconds, "auto_threshold": auto,
@@ -308,17 +357,21 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
 
 
 def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict:
-    """Median ms from a rendered 256x256 feature map and a patch to a mask on screen (query, similarity,
-    automatic threshold, threshold): {"total", "auto" (the automatic threshold's share)}."""
+    """Median ms from a rendered 256x256 feature map and a patch to a mask on screen as the editor does it (query,
+    similarity, automatic threshold, threshold, the patch's surface points): {"total", "auto" (the automatic
+    threshold's share)}."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
-    from repaint_nerf.core.select.autothreshold import patch_auto_threshold
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
+    from repaint_nerf.core.select.geometry import patch_anchors
     from repaint_nerf.core.select.query import Patch
     from repaint_nerf.core.select.selection import Selection
 
     cams = trainer.cameras
     scale = size / float(max(int(cams.width[patch.view]), int(cams.height[patch.view])))
-    feat = render_camera(trainer.field, trainer.grid, cams, patch.view,
-                         RenderOptions(outputs=("feature",)), scale=scale)["feature"]
+    out = render_camera(trainer.field, trainer.grid, cams, patch.view,
+                        RenderOptions(outputs=("feature", "depth", "opacity")), scale=scale)
+    feat, depth, opacity = out["feature"], out["depth"].cpu().numpy(), out["opacity"].cpu().numpy()
+    cam = cams.to("cpu")[patch.view].scaled(scale)
     big = Patch(patch.view, *(int(round(v * scale)) for v in (patch.x0, patch.y0, patch.x1, patch.y1)))
     total, auto = [], []
     for _ in range(repeats):
@@ -327,10 +380,11 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
         sel.add_patch(feat, big)
         sim = sel.similarity(feat)
         t1 = time.perf_counter()
-        t = patch_auto_threshold(sim, big)
+        t = patch_auto_threshold(sim, big, depth, opacity)
         t2 = time.perf_counter()
         m = sim > t
         _ = bool(m[0, 0])  # the result is on the host
+        sel.add_anchors(patch_anchors(patch_pixels(tuple(sim.shape), big), sim.numpy(), depth, opacity, cam, t))
         total.append(time.perf_counter() - t0)
         auto.append(t2 - t1)
     return {"total": 1000.0 * float(np.median(total)), "auto": 1000.0 * float(np.median(auto))}

@@ -35,8 +35,23 @@ CREASE_MIN = 2.0  # a crease component must span twice the band's width: a conta
 CREASE_STEP = 2  # pixels each side: the band is ~2 * CREASE_STEP + 1 wide, wide enough to have no diagonal gap
 
 
+def depth_noise(w: np.ndarray, surface: np.ndarray) -> float:
+    """The inverse-depth map `w`'s noise relative to its value: 1.4826 x the median of |w(p+1) - 2 w(p) + w(p-1)| / w(p)
+    along rows and columns on `surface` (a robust sigma of the second difference; 0 on planes and clean depth)."""
+    vals = []
+    for axis in (0, 1):
+        ok = surface & np.roll(surface, -1, axis) & np.roll(surface, 1, axis)
+        sl = [slice(None)] * 2
+        sl[axis] = slice(1, -1)  # rolled-in borders compare against the opposite side of the image
+        second = np.abs(np.roll(w, -1, axis) - 2.0 * w + np.roll(w, 1, axis)) / np.maximum(w, 1e-12)
+        vals.append(second[tuple(sl)][ok[tuple(sl)]])
+    v = np.concatenate(vals)
+    return 1.4826 * float(np.median(v)) if v.size else 0.0
+
+
 def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float = DEPTH_EDGE) -> np.ndarray:
-    """Barrier pixels (bool (H, W)) of a z-depth map: far sides of depth discontinuities, and no surface."""
+    """Barrier pixels (bool (H, W)) of a z-depth map: far sides of depth discontinuities, and no surface.
+    (On depth rougher than `rel` itself every pixel looks like an edge: see `fit_parts`.)"""
     z = np.asarray(depth, np.float64)
     surface = z > 0 if opacity is None else (np.asarray(opacity) > MIN_OPACITY) & (z > 0)
     w = np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0)
@@ -190,22 +205,46 @@ class GeometryParts:
         return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote") if getattr(self, k)]
 
 
-# The default for saved masks: the voxel clean-up only; `select --geometry full` (FULL_PARTS) adds every other part.
-# Measured at the patch's automatic threshold: on trained 128-px fields of the photo-like presets (600 steps) the
-# clean-up alone gave bread 0.066 and toys 0.149, every part 0.893 and 0.633; on tests/test_selection.py's tiny
-# 32-px field (an 8-px sphere) every part gave 0.734 against 0.944, its rough depth cutting the sphere with edges.
-DEFAULT_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False)
+# 'basic' is the voxel clean-up only; 'full' (the default) adds every other part, where the depth allows it
+# (fit_parts). At the patch's automatic threshold on trained 128-px fields of the photo-like presets (600 steps)
+# basic gave bread 0.066, lemon 0.264, toys 0.149 and full 0.893, 0.820, 0.633; on tests/test_selection.py's tiny
+# 32-px field full gave 0.734 against basic's 0.944 (its rough depth cut the sphere with edges): fit_parts now
+# turns the 2D parts off there.
+BASIC_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False)
 FULL_PARTS = GeometryParts()
 GEOMETRY_NAMES = ("basic", "full")
+DEFAULT_GEOMETRY = "full"
+
+
+def fit_parts(parts: GeometryParts, depths: list[np.ndarray], opacities: list[np.ndarray]) -> GeometryParts:
+    """`parts` without the 2D geometry (edges, growth, holes, creases, vote) when the views' depth is too rough
+    for it: its median noise (`depth_noise`) reaches `DEPTH_EDGE`, so no depth step can be told from the
+    roughness (a 32-px trained field: ~3%, where depth edges cut its objects into specks; 128-px fields ~0.7%).
+    The voxel clean-up, which needs only surface points, stays."""
+    if not (parts.edges or parts.grow or parts.holes or parts.creases or parts.vote):
+        return parts
+    noise = []
+    for d, o in zip(depths, opacities):
+        z = np.asarray(d, np.float64)
+        surface = (np.asarray(o) > MIN_OPACITY) & (z > 0)
+        if surface.sum() >= 16:
+            noise.append(depth_noise(np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0), surface))
+    if noise and float(np.median(noise)) >= DEPTH_EDGE:
+        return GeometryParts(edges=False, grow=False, holes=False, cleanup3d=parts.cleanup3d, creases=False,
+                             vote=False)
+    return parts
 
 
 def parts_named(name: str) -> GeometryParts:
-    """The geometry parts a selection names: 'basic' (DEFAULT_PARTS) or 'full' (FULL_PARTS)."""
+    """The geometry parts a selection names: 'basic' (BASIC_PARTS) or 'full' (FULL_PARTS)."""
     from repaint_nerf.core.errors import UserError
 
     if name not in GEOMETRY_NAMES:
         raise UserError(f"unknown selection geometry {name!r}", hint="use 'basic' or 'full'")
-    return FULL_PARTS if name == "full" else DEFAULT_PARTS
+    return FULL_PARTS if name == "full" else BASIC_PARTS
+
+
+DEFAULT_PARTS = parts_named(DEFAULT_GEOMETRY)
 
 SEED_DEPTH_TOL = 0.015  # a projected seed point lands on a view's surface when its depth agrees this well (relative)
 MAX_SEED_POINTS = 4000

@@ -129,7 +129,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     geometry.GeometryParts, default: the parts the selection's `geometry` names) seeded by the selection's positive patches in
     training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
     the final masks."""
-    from repaint_nerf.core.select.geometry import GeometryParts, parts_named
+    from repaint_nerf.core.select.geometry import GeometryParts, fit_parts, parts_named
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
     cache = cache or ViewCache(field, grid, cameras)
@@ -143,13 +143,14 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
     seeds = selection_seeds(selection, maps, cameras) if do_cleanup else []
-    parts = (parts or parts_named(getattr(selection, "geometry", "basic"))) if seeds else GeometryParts.none()
+    asked = (parts or parts_named(selection.geometry)) if seeds else GeometryParts.none()
+    parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
     out = shaped_masks(sims, maps, cameras, seeds, t, parts)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
         write_masks(workspace.masks_dir, out, names, {"threshold": t, "cleanup": bool(do_cleanup),
-                                                      "geometry": parts.names()})
+                                                      "geometry": parts.names(), "geometry_asked": asked.names()})
     return out
 
 

@@ -15,6 +15,7 @@ from torch import Tensor
 
 from repaint_nerf.core.errors import UserError, WorkspaceError
 from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
+from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY
 from repaint_nerf.core.select.query import Patch, patch_query, text_query
 from repaint_nerf.core.workspace import atomic
 
@@ -31,7 +32,7 @@ class Selection:
     texts: list[str] = field(default_factory=list)
     threshold: float = DEFAULT_THRESHOLD  # what the masks use: the automatic one unless the user chose one
     cleanup: bool = True
-    geometry: str = "basic"  # the geometry parts of the masks: 'basic' or 'full' (core.select.geometry.parts_named)
+    geometry: str = DEFAULT_GEOMETRY  # the masks' geometry parts: 'basic' or 'full' (core.select.geometry.parts_named)
     auto_threshold: float | None = None  # the automatic threshold of the queries (core.select.autothreshold)
     anchors: list[list[float]] = field(default_factory=list)  # field-space surface points of free-view patches
     teacher: str = ""
@@ -123,7 +124,7 @@ class Selection:
         if any(len(p) != 3 for p in anchors):
             raise ValueError("an anchor point is not three numbers")
 
-        if d.get("geometry", "basic") not in GEOMETRY_NAMES:
+        if d.get("geometry", "basic") not in GEOMETRY_NAMES:  # selections saved before it had the choice: basic
             raise ValueError(f"unknown geometry {d.get('geometry')!r}, expected one of {', '.join(GEOMETRY_NAMES)}")
         return Selection(patches=[Patch.from_dict(p) for p in d["patches"]],
                          positives=[torch.tensor(q, dtype=torch.float32) for q in d["positives"]],
