@@ -16,6 +16,7 @@ from repaint_nerf.core.bench.recon import time_to
 
 TARGETS = (25.0, 30.0)
 EARLY_SECONDS = 30.0  # training seconds counted as "early" (an untrained, foggy field)
+TRACE_POINTS = 60  # rows of the per-size trace (steps/s, samples per ray, grid occupancy along training)
 PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EVAL_VIEWS test views spread over "
                 "the split, one fixed EVAL_CROP-px square crop each, at most EVAL_SAMPLE_CAP samples per ray), "
                 "run at `evals` evenly spaced points of the training budget; evaluation time is not counted as "
@@ -77,6 +78,8 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     trainer.plan(seconds=seconds)
     early = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
     late = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
+    trace: list[dict] = []
+    span = {"steps": 0, "seconds": 0.0, "samples": 0.0}
 
     def on_step(info: dict) -> None:
         part = early if trainer.train_seconds - info["seconds"] < early_seconds else late
@@ -84,6 +87,16 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         part["seconds"] += info["seconds"]
         part["samples"].append(info.get("samples_per_ray", 0.0))
         part["candidates"].append(info.get("candidates_per_ray", 0.0))
+        span["steps"] += 1
+        span["seconds"] += info["seconds"]
+        span["samples"] += info.get("samples_per_ray", 0.0)
+        if trainer.train_seconds >= seconds * (len(trace) + 1) / TRACE_POINTS:
+            trace.append({"seconds": trainer.train_seconds, "step": trainer.step_count,
+                          "steps_per_s": span["steps"] / max(span["seconds"], 1e-9),
+                          "samples_per_ray": span["samples"] / span["steps"],
+                          "march_samples": trainer.march_samples,
+                          "occupied": trainer.grid.occupied_fraction(), "batch_psnr": info.get("psnr")})
+            span.update(steps=0, seconds=0.0, samples=0.0)
 
     eval_total = 0.0
     ev = trainer.evaluate()
@@ -126,6 +139,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "load_seconds": load_seconds,
         "peak_rss_mb": _peak_rss_mb(),
         "curve": curve,
+        "trace": trace,
         "device": describe(trainer.device),
     }
 
