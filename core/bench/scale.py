@@ -18,7 +18,8 @@ TARGETS = (25.0, 30.0)
 EARLY_SECONDS = 30.0  # training seconds counted as "early" (an untrained, foggy field)
 TRACE_POINTS = 60  # rows of the per-size trace (steps/s, samples per ray, grid occupancy along training)
 PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EVAL_VIEWS test views spread over "
-                "the split, one fixed EVAL_CROP-px square crop each, at most EVAL_SAMPLE_CAP samples per ray), "
+                "the split, an EVAL_GRID x EVAL_GRID grid of pixels spread over each view, at most EVAL_SAMPLE_CAP "
+                "samples per ray), "
                 "run at `evals` evenly spaced points of the training budget; evaluation time is not counted as "
                 "training time; seconds_to_* interpolate linearly between evaluations")
 

@@ -37,7 +37,10 @@ CHECKPOINT_NAME = "stage1.safetensors"
 # about 4.5 training batches of rays (forward only): measured on the 128-px demo (untrained, contended), 8 crops
 # of 128 px (131k rays) took 189 s, 22x a training step (8.4 s)
 EVAL_VIEWS = 8
-EVAL_CROP = 48  # pixels per side of each view's crop (SSIM's 11-px window fits)
+# pixels per side of each view's evaluation grid: EVAL_GRID x EVAL_GRID pixels spread evenly over the whole view
+# (SSIM's 11-px window fits). A 48-px crop instead covered 14% of a 128-px view but 3.5% of a 256-px one, often
+# only the transparent background there (bench scale on the 256-px demo: 'inf' dB), so sizes did not compare
+EVAL_GRID = 48
 EVAL_SAMPLE_CAP = 128  # samples per ray; see RenderOptions.sample_cap
 
 
@@ -542,7 +545,8 @@ class Stage1Trainer:
         """Mean PSNR (and SSIM) of renders of a split against its images composited over the eval background.
 
         By default a bounded evaluation, whose cost does not grow with the image size: `EVAL_VIEWS` views
-        spread over the split (or `max_views`), one fixed `EVAL_CROP`-pixel square crop of each, and at most
+        spread over the split (or `max_views`), an `EVAL_GRID` x `EVAL_GRID` grid of pixels spread evenly over
+        each (the same scene content at every image size; see eval_pixels), and at most
         `EVAL_SAMPLE_CAP` samples per ray (an untrained, foggy field is never marched to the far bound).
         `full=True` renders every pixel of the first `max_views` views (all by default) without the cap.
         Views left when `time.perf_counter()` passes `deadline` are skipped (at least one is evaluated)
@@ -570,13 +574,13 @@ class Stage1Trainer:
                 gt = target_image(data.images[i], bg)
                 rgb = out["rgb"]
             else:
-                u0, v0, cw, ch = crop_box(i, int(cams.width[i]), int(cams.height[i]), EVAL_CROP)
-                vv, uu = torch.meshgrid(torch.arange(v0, v0 + ch, device=self.device),
-                                        torch.arange(u0, u0 + cw, device=self.device), indexing="ij")
+                us, vs = eval_pixels(int(cams.width[i]), int(cams.height[i]), EVAL_GRID)
+                vv, uu = torch.meshgrid(torch.as_tensor(vs, device=self.device),
+                                        torch.as_tensor(us, device=self.device), indexing="ij")
                 o, d, _ = cams.rays(torch.full_like(uu, i).reshape(-1), uu.reshape(-1), vv.reshape(-1))
                 out = render_rays(self.field, self.grid, o, d, opts)
-                rgb = out["rgb"].reshape(ch, cw, 3)
-                gt = target_image(np.asarray(data.images[i])[v0:v0 + ch, u0:u0 + cw], bg)
+                rgb = out["rgb"].reshape(len(vs), len(us), 3)
+                gt = target_image(np.asarray(data.images[i])[np.ix_(vs, us)], bg)
             pixels += gt.shape[0] * gt.shape[1]
             samples += float(out["stats"]["samples"])
             ps.append(psnr(rgb.clamp(0, 1), gt))
@@ -661,12 +665,14 @@ def spread_views(n: int, k: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, max(1, k))})
 
 
-def crop_box(i: int, width: int, height: int, side: int) -> tuple[int, int, int, int]:
-    """(u0, v0, w, h) of view i's evaluation crop: at most `side` square, at a place fixed by i (a seeded
-    draw), so successive evaluations compare the same pixels."""
-    cw, ch = min(side, width), min(side, height)
-    rng = np.random.default_rng(1000 + i)
-    return int(rng.integers(0, width - cw + 1)), int(rng.integers(0, height - ch + 1)), cw, ch
+def eval_pixels(width: int, height: int, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """(columns, rows) of the bounded evaluation's pixels: at most `side` of each, the centres of a `side` x `side`
+    split of the view (a nearest-pixel downscale), so every image size shows the same content at the same cost,
+    and successive evaluations compare the same pixels."""
+    def axis(n: int) -> np.ndarray:
+        k = min(side, n)
+        return ((np.arange(k) + 0.5) * n / k).astype(np.int64)
+    return axis(width), axis(height)
 
 
 def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
