@@ -268,3 +268,29 @@ def test_bounded_evaluation_pixels_cover_the_whole_view_at_every_size():
         assert us.tolist() == ref_u and us[0] <= w / 48 and us[-1] >= w - w / 48 - 1
     small, big = eval_pixels(128, 128, 48)[0], eval_pixels(256, 256, 48)[0]
     assert np.all(np.abs((small + 0.5) / 128 - (big + 0.5) / 256) <= 1.0 / 128)  # same relative places
+
+
+def test_foggy_steps_skip_the_filter_pass_with_the_same_result(scene_factory):
+    """An untrained field is fog: the density-only filter pass keeps every sample, so the next steps (until the grid's
+    next update) evaluate them with grad in one pass: the same losses and weights as filtering, less work."""
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
+
+    scene = load_scene(scene_factory("demo", size=32, views=4, test_views=2))
+    runs = {}
+    for kept in (0.99, 2.0):  # 2.0: never skip (the filter every step)
+        cfg = TrainConfig(seed=0, rays_per_batch=256, grid_resolution=16, max_samples=64, early_max_samples=0,
+                          grid_update_every=4, one_pass_kept=kept)
+        tr = Stage1Trainer(scene, None, cfg)
+        runs[kept] = (tr, [tr.step() for _ in range(6)])
+    (skip, infos), (never, ref) = runs[0.99], runs[2.0]
+    assert skip.filter_kept == 1.0  # fog: the filter kept every candidate
+    # one pass after a filtered step, the filter again on the grid's update steps (0, 4)
+    assert [i["one_pass"] for i in infos] == [False, True, True, True, False, True]
+    assert not any(i["one_pass"] for i in ref)
+    for a, b in zip(infos, ref):
+        assert a["samples_per_ray"] == b["samples_per_ray"] and abs(a["loss"] - b["loss"]) <= 1e-5 * b["loss"]
+    for p, q in zip(skip.field.parameters(), never.field.parameters()):
+        assert torch.allclose(p, q, rtol=1e-4, atol=1e-6)
+    skip.filter_kept = 0.5  # a field that has cleared: its filter drops samples, so it is kept
+    assert not skip.step()["one_pass"]

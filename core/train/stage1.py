@@ -73,6 +73,10 @@ class TrainConfig:
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
+    # skip the density-only filter pass (RenderOptions.one_pass) while it keeps at least this share of its
+    # candidates: a foggy field, where every sample is kept and the pass is pure cost. Measured again at each grid
+    # update; > 1 = never skip
+    one_pass_kept: float = 0.99
     grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
     # once per grid update the worst-rendered rays of the batch reopen the pruned cells in front of their
     # surface (a thin structure pruned before it was learned; OccupancyGrid.reopen)
@@ -239,6 +243,7 @@ class Stage1Trainer:
         self.history = TrainingHistory()  # loss/PSNR per step, saved with checkpoints (the editor's plot)
         self.profile = False
         self.last_times: dict = {}
+        self.filter_kept = 0.0  # share of its candidates the last filtered step kept (see TrainConfig.one_pass_kept)
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
         if not self.cfg.lambda_feature:
@@ -422,9 +427,15 @@ class Stage1Trainer:
         lr = self._set_lr()
         batch = self.make_batch()
         lap("batch")
+        every = self.cfg.grid_update_every
+        one_pass = self.filter_kept >= self.cfg.one_pass_kept and self.step_count % every != 0
         opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
-                             max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof)
+                             max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
+                             one_pass=one_pass)
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
+        stats = out.get("stats") or {}
+        if not one_pass and stats.get("density_samples"):
+            self.filter_kept = stats["samples"] / stats["density_samples"]
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
         if self.features is not None:
@@ -434,7 +445,6 @@ class Stage1Trainer:
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
         total = losses.stage1_loss(color, parts.get("feature"), parts.get("depth"),
                                    self.cfg.lambda_feature, self.cfg.lambda_depth)
-        every = self.cfg.grid_update_every
         if self.cfg.reopen_error > 0 and self.cfg.reopen_fraction > 0 and self.step_count % every == every - 1:
             self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
@@ -461,7 +471,7 @@ class Stage1Trainer:
                     skipped=not finite, skipped_steps=self.skipped_steps,
                     spike=self.spikes.update(float(total.detach())), spikes=self.spikes.spikes)
         self.history.add(info)
-        stats = out.get("stats") or {}
+        info["one_pass"] = one_pass
         for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
                 info[key] = float(stats[key])
