@@ -81,6 +81,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     late = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
     trace: list[dict] = []
     span = {"steps": 0, "seconds": 0.0, "samples": 0.0}
+    work = {"samples": 0.0}  # samples evaluated with grad so far (rays x samples per ray): the load-free cost
 
     def on_step(info: dict) -> None:
         part = early if trainer.train_seconds - info["seconds"] < early_seconds else late
@@ -91,6 +92,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         span["steps"] += 1
         span["seconds"] += info["seconds"]
         span["samples"] += info.get("samples_per_ray", 0.0)
+        work["samples"] += info.get("samples_per_ray", 0.0) * trainer.cfg.rays_per_batch
         if trainer.train_seconds >= seconds * (len(trace) + 1) / TRACE_POINTS:
             trace.append({"seconds": trainer.train_seconds, "step": trainer.step_count,
                           "steps_per_s": span["steps"] / max(span["seconds"], 1e-9),
@@ -102,12 +104,13 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     eval_total = 0.0
     ev = trainer.evaluate()
     eval_total += ev["seconds"]
-    curve = [{"seconds": 0.0, "step": 0, "psnr": ev["psnr"]}]
+    curve = [{"seconds": 0.0, "step": 0, "msamples": 0.0, "psnr": ev["psnr"]}]
     for k in range(1, evals + 1):
         trainer.train(seconds=seconds * k / evals, callback=on_step)
         ev = trainer.evaluate()
         eval_total += ev["seconds"]
-        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]})
+        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "msamples": work["samples"] / 1e6,
+                      "psnr": ev["psnr"]})
     closing = trainer.evaluate(with_ssim=True)
     ms, render_spr = render_ms(trainer)
     h, w = scene.train.images[0].shape[:2]
@@ -118,6 +121,10 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "train_views": len(scene.train),
         "seconds_to_25": time_to(curve, TARGETS[0]),
         "seconds_to_30": time_to(curve, TARGETS[1]),
+        # the same targets in steps and in millions of samples evaluated with grad: figures a shared machine's load
+        # does not change, for comparing sizes measured at different times
+        **{f"{name}_to_{t:g}": time_to([{**p, "seconds": p[key]} for p in curve], t)
+           for name, key in (("steps", "step"), ("msamples", "msamples")) for t in TARGETS},
         "steps_per_s_early": early["steps"] / early["seconds"] if early["seconds"] > 0 else None,
         "steps_per_s": late["steps"] / late["seconds"] if late["seconds"] > 0 else None,
         "steps_per_s_overall": trainer.step_count / max(trainer.train_seconds, 1e-9),
