@@ -27,6 +27,11 @@ def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
         assert 1 <= e["steps_early"] <= e["steps"] and e["steps_per_s_early"] > 0  # the first second's steps
         assert (e["steps_per_s"] is None) == (e["steps_early"] == e["steps"])
         assert len(e["curve"]) == 2 and e["curve"][0]["step"] == 0 and e["curve"][1]["step"] == e["steps"]
+        assert all(key in e for key in ("steps_to_25", "steps_to_30", "msamples_to_25", "msamples_to_30"))
+        assert e["curve"][-1]["msamples"] > e["curve"][0]["msamples"] == 0.0
+        steps = [r["step"] for r in e["trace"]]  # the trace follows training in order
+        assert steps and steps == sorted(steps) and steps[-1] <= e["steps"]
+        assert all(r["steps_per_s"] > 0 and r["samples_per_ray"] > 0 and 0 <= r["occupied"] <= 1 for r in e["trace"])
     assert res["isolated_processes"] and "bounded evaluation" in res["psnr_measured"]
     assert out.with_suffix(".png").stat().st_size > 1000
     assert "wrote" in capsys.readouterr().out

@@ -70,14 +70,14 @@ def test_evaluation_is_bounded_and_full_only_when_asked(trainer_160, monkeypatch
     from repaint_nerf.core.train import stage1
 
     # smaller bounds than the defaults keep the test quick; the rule is the same
-    EVAL_VIEWS, EVAL_CROP, EVAL_SAMPLE_CAP = 5, 48, 16
+    EVAL_VIEWS, EVAL_GRID, EVAL_SAMPLE_CAP = 5, 48, 16
     monkeypatch.setattr(stage1, "EVAL_VIEWS", EVAL_VIEWS)
-    monkeypatch.setattr(stage1, "EVAL_CROP", EVAL_CROP)
+    monkeypatch.setattr(stage1, "EVAL_GRID", EVAL_GRID)
     monkeypatch.setattr(stage1, "EVAL_SAMPLE_CAP", EVAL_SAMPLE_CAP)
     tr = trainer_160
     ev = tr.evaluate(with_ssim=True)
     assert ev["views"] == EVAL_VIEWS < ev["views_total"] == 12 and not ev["full"]
-    assert ev["pixels"] == EVAL_VIEWS * EVAL_CROP * EVAL_CROP  # crops of the 160-px views
+    assert ev["pixels"] == EVAL_VIEWS * EVAL_GRID * EVAL_GRID  # grids over the 160-px views
     assert ev["samples_per_ray"] <= EVAL_SAMPLE_CAP and np.isfinite(ev["ssim"])
     again = tr.evaluate()
     assert again["psnr"] == ev["psnr"]  # the same views and pixels every time: curves compare
@@ -252,3 +252,45 @@ def test_big_photos_are_held_at_training_resolution_and_decoded_one_at_a_time(tm
     assert sum(im.nbytes for im in held) == 8 * 384 * 512 * 3
     tr = Stage1Trainer(scene, None, TrainConfig(seed=0, rays_per_batch=64, grid_resolution=16))
     assert tr.pixels.dtype == torch.uint8 and tr.pixels.numel() == 6 * 384 * 512 * 3
+
+
+def test_bounded_evaluation_pixels_cover_the_whole_view_at_every_size():
+    """The bounded evaluation's pixels are the centres of a side x side split of the view: the same places in the
+    scene at 128 and 256 px (a crop covered 4x less of the view at 256 px, often only background)."""
+    from repaint_nerf.core.train.stage1 import eval_pixels
+
+    for w, h in ((128, 128), (256, 256), (300, 200), (20, 30)):
+        us, vs = eval_pixels(w, h, 48)
+        assert len(us) == min(48, w) and len(vs) == min(48, h)
+        assert np.all(np.diff(us) > 0) and np.all(np.diff(vs) > 0) and us[-1] < w and vs[-1] < h
+        # each pixel is the centre of its 1/48 of the view: the span covers the view from edge to edge
+        ref_u = [int((j + 0.5) * w / len(us)) for j in range(len(us))]
+        assert us.tolist() == ref_u and us[0] <= w / 48 and us[-1] >= w - w / 48 - 1
+    small, big = eval_pixels(128, 128, 48)[0], eval_pixels(256, 256, 48)[0]
+    assert np.all(np.abs((small + 0.5) / 128 - (big + 0.5) / 256) <= 1.0 / 128)  # same relative places
+
+
+def test_foggy_steps_skip_the_filter_pass_with_the_same_result(scene_factory):
+    """An untrained field is fog: the density-only filter pass keeps every sample, so the next steps (until the grid's
+    next update) evaluate them with grad in one pass: the same losses and weights as filtering, less work."""
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
+
+    scene = load_scene(scene_factory("demo", size=32, views=4, test_views=2))
+    runs = {}
+    for kept in (0.99, 2.0):  # 2.0: never skip (the filter every step)
+        cfg = TrainConfig(seed=0, rays_per_batch=256, grid_resolution=16, max_samples=64, early_max_samples=0,
+                          grid_update_every=4, one_pass_kept=kept)
+        tr = Stage1Trainer(scene, None, cfg)
+        runs[kept] = (tr, [tr.step() for _ in range(6)])
+    (skip, infos), (never, ref) = runs[0.99], runs[2.0]
+    assert skip.filter_kept == 1.0  # fog: the filter kept every candidate
+    # one pass after a filtered step, the filter again on the grid's update steps (0, 4)
+    assert [i["one_pass"] for i in infos] == [False, True, True, True, False, True]
+    assert not any(i["one_pass"] for i in ref)
+    for a, b in zip(infos, ref):
+        assert a["samples_per_ray"] == b["samples_per_ray"] and abs(a["loss"] - b["loss"]) <= 1e-5 * b["loss"]
+    for p, q in zip(skip.field.parameters(), never.field.parameters()):
+        assert torch.allclose(p, q, rtol=1e-4, atol=1e-6)
+    skip.filter_kept = 0.5  # a field that has cleared: its filter drops samples, so it is kept
+    assert not skip.step()["one_pass"]

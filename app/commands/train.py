@@ -26,7 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the paper trains LLFF at 504x378; 0 = full size)")
     p.add_argument("--full-eval", action="store_true",
                    help="close with an evaluation of every pixel of every test view (default: a bounded one, "
-                        "8 views x 48-px crops, whose cost does not grow with the image size)")
+                        "8 views x a 48x48 grid of pixels spread over each, whose cost does not grow with the image "
+                        "size)")
     p.add_argument("--kind", default=None, choices=("bounded", "forward", "unbounded"),
                    help="scene kind (default: the dataset's, else detected from the camera layout)")
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
@@ -216,5 +217,5 @@ def closing_evaluation(trainer, budget, full: bool) -> dict | None:
 
 def _print_eval(ev: dict) -> None:
     what = (f"all pixels of {ev['views']} of {ev['views_total']} views" if ev["full"] else
-            f"{ev['views']} of {ev['views_total']} views, {ev['pixels']} pixels in crops (--full-eval for all)")
+            f"{ev['views']} of {ev['views_total']} views, {ev['pixels']} pixels spread over them (--full-eval for all)")
     print(f"{ev['split']} PSNR {ev['psnr']:.2f} dB, SSIM {ev['ssim']:.4f} over {what}; {ev['seconds']:.1f} s")

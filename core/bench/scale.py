@@ -16,8 +16,10 @@ from repaint_nerf.core.bench.recon import time_to
 
 TARGETS = (25.0, 30.0)
 EARLY_SECONDS = 30.0  # training seconds counted as "early" (an untrained, foggy field)
+TRACE_POINTS = 60  # rows of the per-size trace (steps/s, samples per ray, grid occupancy along training)
 PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EVAL_VIEWS test views spread over "
-                "the split, one fixed EVAL_CROP-px square crop each, at most EVAL_SAMPLE_CAP samples per ray), "
+                "the split, an EVAL_GRID x EVAL_GRID grid of pixels spread over each view, at most EVAL_SAMPLE_CAP "
+                "samples per ray), "
                 "run at `evals` evenly spaced points of the training budget; evaluation time is not counted as "
                 "training time; seconds_to_* interpolate linearly between evaluations")
 
@@ -77,6 +79,9 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     trainer.plan(seconds=seconds)
     early = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
     late = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
+    trace: list[dict] = []
+    span = {"steps": 0, "seconds": 0.0, "samples": 0.0}
+    work = {"samples": 0.0}  # samples evaluated with grad so far (rays x samples per ray): the load-free cost
 
     def on_step(info: dict) -> None:
         part = early if trainer.train_seconds - info["seconds"] < early_seconds else late
@@ -84,16 +89,28 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         part["seconds"] += info["seconds"]
         part["samples"].append(info.get("samples_per_ray", 0.0))
         part["candidates"].append(info.get("candidates_per_ray", 0.0))
+        span["steps"] += 1
+        span["seconds"] += info["seconds"]
+        span["samples"] += info.get("samples_per_ray", 0.0)
+        work["samples"] += info.get("samples_per_ray", 0.0) * trainer.cfg.rays_per_batch
+        if trainer.train_seconds >= seconds * (len(trace) + 1) / TRACE_POINTS:
+            trace.append({"seconds": trainer.train_seconds, "step": trainer.step_count,
+                          "steps_per_s": span["steps"] / max(span["seconds"], 1e-9),
+                          "samples_per_ray": span["samples"] / span["steps"],
+                          "march_samples": trainer.march_samples,
+                          "occupied": trainer.grid.occupied_fraction(), "batch_psnr": info.get("psnr")})
+            span.update(steps=0, seconds=0.0, samples=0.0)
 
     eval_total = 0.0
     ev = trainer.evaluate()
     eval_total += ev["seconds"]
-    curve = [{"seconds": 0.0, "step": 0, "psnr": ev["psnr"]}]
+    curve = [{"seconds": 0.0, "step": 0, "msamples": 0.0, "psnr": ev["psnr"]}]
     for k in range(1, evals + 1):
         trainer.train(seconds=seconds * k / evals, callback=on_step)
         ev = trainer.evaluate()
         eval_total += ev["seconds"]
-        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]})
+        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "msamples": work["samples"] / 1e6,
+                      "psnr": ev["psnr"]})
     closing = trainer.evaluate(with_ssim=True)
     ms, render_spr = render_ms(trainer)
     h, w = scene.train.images[0].shape[:2]
@@ -104,6 +121,10 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "train_views": len(scene.train),
         "seconds_to_25": time_to(curve, TARGETS[0]),
         "seconds_to_30": time_to(curve, TARGETS[1]),
+        # the same targets in steps and in millions of samples evaluated with grad: figures a shared machine's load
+        # does not change, for comparing sizes measured at different times
+        **{f"{name}_to_{t:g}": time_to([{**p, "seconds": p[key]} for p in curve], t)
+           for name, key in (("steps", "step"), ("msamples", "msamples")) for t in TARGETS},
         "steps_per_s_early": early["steps"] / early["seconds"] if early["seconds"] > 0 else None,
         "steps_per_s": late["steps"] / late["seconds"] if late["seconds"] > 0 else None,
         "steps_per_s_overall": trainer.step_count / max(trainer.train_seconds, 1e-9),
@@ -126,6 +147,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "load_seconds": load_seconds,
         "peak_rss_mb": _peak_rss_mb(),
         "curve": curve,
+        "trace": trace,
         "device": describe(trainer.device),
     }
 

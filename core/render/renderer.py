@@ -49,6 +49,9 @@ class RenderOptions:
     # (e.g. untrained) field never reaches t_threshold, so without it every ray marches to the far bound;
     # what a capped ray has not met by then counts as background
     sample_cap: int = 0
+    # training only: evaluate every candidate with grad in one pass, without the density-only pass that drops
+    # those behind T < t_threshold. For a foggy field that pass keeps them all: it is work that need not be there
+    one_pass: bool = False
 
 
 @dataclass
@@ -172,7 +175,9 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             rounds += 1
         acc.stats["candidates"] += len(s)
         acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
-        if collect:
+        if collect and opts.one_pass:
+            kept.append(s)  # rays march to their end: nothing is known to stop them
+        elif collect:
             with _Timer(acc, "field", prof, dev), torch.no_grad():
                 sigma = field.density(s.x).reshape(-1) if len(s) else torch.zeros(0, device=dev)
             acc.stats["density_samples"] += len(s)

@@ -37,7 +37,10 @@ CHECKPOINT_NAME = "stage1.safetensors"
 # about 4.5 training batches of rays (forward only): measured on the 128-px demo (untrained, contended), 8 crops
 # of 128 px (131k rays) took 189 s, 22x a training step (8.4 s)
 EVAL_VIEWS = 8
-EVAL_CROP = 48  # pixels per side of each view's crop (SSIM's 11-px window fits)
+# pixels per side of each view's evaluation grid: EVAL_GRID x EVAL_GRID pixels spread evenly over the whole view
+# (SSIM's 11-px window fits). A 48-px crop instead covered 14% of a 128-px view but 3.5% of a 256-px one, often
+# only the transparent background there (bench scale on the 256-px demo: 'inf' dB), so sizes did not compare
+EVAL_GRID = 48
 EVAL_SAMPLE_CAP = 128  # samples per ray; see RenderOptions.sample_cap
 
 
@@ -70,6 +73,10 @@ class TrainConfig:
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
+    # skip the density-only filter pass (RenderOptions.one_pass) while it keeps at least this share of its
+    # candidates: a foggy field, where every sample is kept and the pass is pure cost. Measured again at each grid
+    # update; > 1 = never skip
+    one_pass_kept: float = 0.99
     grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
     # once per grid update the worst-rendered rays of the batch reopen the pruned cells in front of their
     # surface (a thin structure pruned before it was learned; OccupancyGrid.reopen)
@@ -236,6 +243,7 @@ class Stage1Trainer:
         self.history = TrainingHistory()  # loss/PSNR per step, saved with checkpoints (the editor's plot)
         self.profile = False
         self.last_times: dict = {}
+        self.filter_kept = 0.0  # share of its candidates the last filtered step kept (see TrainConfig.one_pass_kept)
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
         if not self.cfg.lambda_feature:
@@ -419,9 +427,15 @@ class Stage1Trainer:
         lr = self._set_lr()
         batch = self.make_batch()
         lap("batch")
+        every = self.cfg.grid_update_every
+        one_pass = self.filter_kept >= self.cfg.one_pass_kept and self.step_count % every != 0
         opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
-                             max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof)
+                             max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
+                             one_pass=one_pass)
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
+        stats = out.get("stats") or {}
+        if not one_pass and stats.get("density_samples"):
+            self.filter_kept = stats["samples"] / stats["density_samples"]
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
         if self.features is not None:
@@ -431,7 +445,6 @@ class Stage1Trainer:
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
         total = losses.stage1_loss(color, parts.get("feature"), parts.get("depth"),
                                    self.cfg.lambda_feature, self.cfg.lambda_depth)
-        every = self.cfg.grid_update_every
         if self.cfg.reopen_error > 0 and self.cfg.reopen_fraction > 0 and self.step_count % every == every - 1:
             self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
@@ -458,7 +471,7 @@ class Stage1Trainer:
                     skipped=not finite, skipped_steps=self.skipped_steps,
                     spike=self.spikes.update(float(total.detach())), spikes=self.spikes.spikes)
         self.history.add(info)
-        stats = out.get("stats") or {}
+        info["one_pass"] = one_pass
         for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
                 info[key] = float(stats[key])
@@ -542,7 +555,8 @@ class Stage1Trainer:
         """Mean PSNR (and SSIM) of renders of a split against its images composited over the eval background.
 
         By default a bounded evaluation, whose cost does not grow with the image size: `EVAL_VIEWS` views
-        spread over the split (or `max_views`), one fixed `EVAL_CROP`-pixel square crop of each, and at most
+        spread over the split (or `max_views`), an `EVAL_GRID` x `EVAL_GRID` grid of pixels spread evenly over
+        each (the same scene content at every image size; see eval_pixels), and at most
         `EVAL_SAMPLE_CAP` samples per ray (an untrained, foggy field is never marched to the far bound).
         `full=True` renders every pixel of the first `max_views` views (all by default) without the cap.
         Views left when `time.perf_counter()` passes `deadline` are skipped (at least one is evaluated)
@@ -570,13 +584,13 @@ class Stage1Trainer:
                 gt = target_image(data.images[i], bg)
                 rgb = out["rgb"]
             else:
-                u0, v0, cw, ch = crop_box(i, int(cams.width[i]), int(cams.height[i]), EVAL_CROP)
-                vv, uu = torch.meshgrid(torch.arange(v0, v0 + ch, device=self.device),
-                                        torch.arange(u0, u0 + cw, device=self.device), indexing="ij")
+                us, vs = eval_pixels(int(cams.width[i]), int(cams.height[i]), EVAL_GRID)
+                vv, uu = torch.meshgrid(torch.as_tensor(vs, device=self.device),
+                                        torch.as_tensor(us, device=self.device), indexing="ij")
                 o, d, _ = cams.rays(torch.full_like(uu, i).reshape(-1), uu.reshape(-1), vv.reshape(-1))
                 out = render_rays(self.field, self.grid, o, d, opts)
-                rgb = out["rgb"].reshape(ch, cw, 3)
-                gt = target_image(np.asarray(data.images[i])[v0:v0 + ch, u0:u0 + cw], bg)
+                rgb = out["rgb"].reshape(len(vs), len(us), 3)
+                gt = target_image(np.asarray(data.images[i])[np.ix_(vs, us)], bg)
             pixels += gt.shape[0] * gt.shape[1]
             samples += float(out["stats"]["samples"])
             ps.append(psnr(rgb.clamp(0, 1), gt))
@@ -661,12 +675,14 @@ def spread_views(n: int, k: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, max(1, k))})
 
 
-def crop_box(i: int, width: int, height: int, side: int) -> tuple[int, int, int, int]:
-    """(u0, v0, w, h) of view i's evaluation crop: at most `side` square, at a place fixed by i (a seeded
-    draw), so successive evaluations compare the same pixels."""
-    cw, ch = min(side, width), min(side, height)
-    rng = np.random.default_rng(1000 + i)
-    return int(rng.integers(0, width - cw + 1)), int(rng.integers(0, height - ch + 1)), cw, ch
+def eval_pixels(width: int, height: int, side: int) -> tuple[np.ndarray, np.ndarray]:
+    """(columns, rows) of the bounded evaluation's pixels: at most `side` of each, the centres of a `side` x `side`
+    split of the view (a nearest-pixel downscale), so every image size shows the same content at the same cost,
+    and successive evaluations compare the same pixels."""
+    def axis(n: int) -> np.ndarray:
+        k = min(side, n)
+        return ((np.arange(k) + 0.5) * n / k).astype(np.int64)
+    return axis(width), axis(height)
 
 
 def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
