@@ -2,9 +2,11 @@
 one patch inside the object the scene's edited/ variant changes, then repaints scored against ground truth:
 PSNR of the masked region against the edited test views and of the rest against the original ones.
 
-First (`drift`), the case that matches Stable Diffusion: the analytic guidance with its unmasked target
-drifted toward a tint (RepaintConfig.analytic_drift), as a diffusion model repaints surroundings it was not
-asked to change, run with the default RepaintConfig; only the unmask loss (paper Eq. unmask) holds them.
+First (`drift`), the case that matches Stable Diffusion: the analytic guidance with its target drifted toward
+a tint wherever the edit leaves the view unchanged (RepaintConfig.analytic_drift), as a diffusion model repaints
+surroundings it was not asked to change, run with the default RepaintConfig; only the unmask loss (paper
+Eq. unmask) holds them, so the mask's errors show: object it misses is held to the original, background it
+takes in is repainted.
 Then the exact analytic guidance along the steps, the lambda_unmask ablations with and without drift, and
 the offline recolour and remove, whose unmasked drop is also measured outside their own (selection) mask.
 Returns plain dicts; the CLI driver (app/bench/edit.py) parses, prints and writes them.
@@ -23,7 +25,8 @@ import numpy as np
 
 ABLATION = (0.0, 1.0, 10.0, 100.0)
 # The analytic guidance knows the true background, so by itself it keeps the unmasked region and cannot show
-# what lambda_unmask is for; the drift runs pull its unmasked target this far toward a flat tint.
+# what lambda_unmask is for; the drift runs pull its target this far toward a flat tint where the edit
+# leaves the view unchanged.
 DRIFT = 0.5
 DRIFT_GOAL = {"unmasked_drop_db": 0.5, "psnr_masked": 25.0}  # issue 16: the defaults must reach both
 OFFLINE_GOAL_DB = 1.0  # the recolour may drop what its mask leaves out by at most this much

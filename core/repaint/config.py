@@ -43,9 +43,10 @@ class RepaintConfig:
     region_resolution: int = 64
     recolor_mode: str = "shading"
     remove_clear_weight: float = 10.0
-    # Measurement only (bench edit's second ablation): the analytic target outside the mask moves this far
-    # toward a flat tint, as a diffusion model also repaints surroundings it was not asked to change; the
-    # unmask loss (paper Eq. unmask) is what holds them. 0 = the true edited views.
+    # Measurement only (bench edit's drift case and second ablation): the analytic target moves this far toward
+    # a flat tint wherever the edit leaves the view unchanged, as a diffusion model also repaints surroundings it
+    # was not asked to change (it never sees the mask); the unmask loss (paper Eq. unmask) is what holds them.
+    # 0 = the true edited views.
     analytic_drift: float = 0.0
     # Stable Diffusion step cost (bench sdcost figures in core.repaint.estimate):
     # the gradient-free UNet's precision: 'auto' = fp16 on CUDA, bf16 on a CPU with native bf16, else fp32.
