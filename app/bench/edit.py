@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=300, help="edit steps of the main run")
     p.add_argument("--ablation-steps", type=int, default=None,
                    help="edit steps of the drift run and each ablation run (default --steps)")
-    p.add_argument("--evals", type=int, default=6, help="evaluations along the main run")
+    p.add_argument("--evals", type=int, default=6, help="evaluations along the drift run and the main run")
     p.add_argument("--optimizer", default=None, choices=("paper", "official"),
                    help="optimiser preset (default: RepaintConfig's)")
     p.add_argument("--unmask-reduction", choices=UNMASK_REDUCTIONS, default=None,
@@ -63,6 +63,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"drift {d['drift']:g}, defaults ({d['unmask_reduction']}, lambda_unmask {d['lambda_unmask']:g}, "
           f"{d['optimizer']}): masked {d['psnr_masked']:.2f} dB, unmasked {d['psnr_unmasked']:.2f} dB "
           f"(drop {d['unmasked_drop_db']:.2f} dB) -> {'ok' if d['ok'] else 'NOT ok'}")
+    print(f"  drop within {d['border_px']} px of the object {d['border']['drop_db']:.2f} dB, beyond "
+          f"{d['beyond_border']['drop_db']:.2f} dB; masked dB along the edit: "
+          + ", ".join(f"{r['step']}: {r['psnr_masked']:.2f}" for r in d["curve"]))
     f, b = result["final"], result["before"]
     print(f"exact guidance: masked {f['psnr_masked']:.2f} dB (from {b['psnr_masked']:.2f}), unmasked "
           f"{f['psnr_unmasked']:.2f} dB (from {b['psnr_unmasked']:.2f})")

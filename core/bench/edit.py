@@ -2,9 +2,11 @@
 one patch inside the object the scene's edited/ variant changes, then repaints scored against ground truth:
 PSNR of the masked region against the edited test views and of the rest against the original ones.
 
-First (`drift`), the case that matches Stable Diffusion: the analytic guidance with its unmasked target
-drifted toward a tint (RepaintConfig.analytic_drift), as a diffusion model repaints surroundings it was not
-asked to change, run with the default RepaintConfig; only the unmask loss (paper Eq. unmask) holds them.
+First (`drift`), the case that matches Stable Diffusion: the analytic guidance with its target drifted toward
+a tint wherever the edit leaves the view unchanged (RepaintConfig.analytic_drift), as a diffusion model repaints
+surroundings it was not asked to change, run with the default RepaintConfig; only the unmask loss (paper
+Eq. unmask) holds them, so the mask's errors show: object it misses is held to the original, background it
+takes in is repainted.
 Then the exact analytic guidance along the steps, the lambda_unmask ablations with and without drift, and
 the offline recolour and remove, whose unmasked drop is also measured outside their own (selection) mask.
 Returns plain dicts; the CLI driver (app/bench/edit.py) parses, prints and writes them.
@@ -23,10 +25,14 @@ import numpy as np
 
 ABLATION = (0.0, 1.0, 10.0, 100.0)
 # The analytic guidance knows the true background, so by itself it keeps the unmasked region and cannot show
-# what lambda_unmask is for; the drift runs pull its unmasked target this far toward a flat tint.
+# what lambda_unmask is for; the drift runs pull its target this far toward a flat tint where the edit
+# leaves the view unchanged.
 DRIFT = 0.5
 DRIFT_GOAL = {"unmasked_drop_db": 0.5, "psnr_masked": 25.0}  # issue 16: the defaults must reach both
 OFFLINE_GOAL_DB = 1.0  # the recolour may drop what its mask leaves out by at most this much
+# The drift case also splits its unmasked drop into the band this fraction of the image wide around the true
+# object (at least 1 px) and the rest, to tell a smeared edge from a background repainted everywhere.
+BORDER_FRACTION = 1 / 32
 
 
 @dataclass
@@ -107,10 +113,19 @@ def edit_config(opts: EditBenchOptions, steps: int, max_samples: int, **changes)
                                **{**given, **changes})
 
 
+def border_regions(masks: list[np.ndarray], pixels: int) -> dict[str, list[np.ndarray]]:
+    """Per view, what to leave out so that an unmasked PSNR covers only the `pixels`-wide band around each
+    mask ("band": everything but the band) or only what lies further away ("far": the mask grown by `pixels`)."""
+    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
+    grown = [cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
+    return {"band": [~g | m for g, m in zip(grown, masks)], "far": grown}
+
+
 def run_edit(scene, state, masks, guidance: str, cfg, test, evals=(), prompt: str = "", log=lambda s: None,
-             own_test_masks=None) -> dict:
+             own_test_masks=None, regions: dict[str, list[np.ndarray]] | None = None) -> dict:
     """One edit from the stage-1 `state` under `cfg`; evaluates at `evals` steps (and at 0 and the end);
-    with `own_test_masks` also the unmasked PSNR outside the edit's own mask, before and after."""
+    with `own_test_masks` also the unmasked PSNR outside the edit's own mask, before and after, and for each
+    of `regions` (name: masks) the unmasked PSNR outside those masks, before and after."""
     from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     field_, grid = state["make"]()
@@ -118,6 +133,7 @@ def run_edit(scene, state, masks, guidance: str, cfg, test, evals=(), prompt: st
     tr = RepaintTrainer(scene, field_, grid, masks=masks, guidance=guidance, prompt=prompt, config=cfg)
     setup_s = time.perf_counter() - t0
     own0 = tr.evaluate("test", own_test_masks)["psnr_unmasked"] if own_test_masks is not None else None
+    regions0 = {k: tr.evaluate("test", m)["psnr_unmasked"] for k, m in (regions or {}).items()}
     curve = [{"step": 0, "seconds": 0.0, **tr.evaluate("test", *test)}]
     for s in sorted(set(evals) | {cfg.steps}):
         while tr.step_count < s and not tr.done:
@@ -133,6 +149,9 @@ def run_edit(scene, state, masks, guidance: str, cfg, test, evals=(), prompt: st
     if own_test_masks is not None:
         own1 = tr.evaluate("test", own_test_masks)["psnr_unmasked"]
         out["own_mask"] = {"psnr_unmasked_before": own0, "psnr_unmasked": own1, "unmasked_drop_db": own0 - own1}
+    for k, m in (regions or {}).items():
+        p1 = tr.evaluate("test", m)["psnr_unmasked"]
+        out.setdefault("regions", {})[k] = {"psnr_before": regions0[k], "psnr": p1, "drop_db": regions0[k] - p1}
     return out
 
 
@@ -206,14 +225,21 @@ def measure(opts: EditBenchOptions, workdir: Path) -> dict:
     ms = state["max_samples"]
     abl_steps = opts.ablation_steps or opts.steps
 
+    def evals_of(steps: int) -> list[int]:
+        return sorted({int(round(s)) for s in np.linspace(0, steps, opts.evals + 1)[1:]})
+
     drift_cfg = edit_config(opts, abl_steps, ms, analytic_drift=DRIFT)
-    d = run_edit(scene, state, masks, "analytic", drift_cfg, test, log=log)
+    border_px = max(1, round(max(gt_test[0].shape) * BORDER_FRACTION))
+    d = run_edit(scene, state, masks, "analytic", drift_cfg, test, evals_of(abl_steps), log=log,
+                 regions=border_regions(gt_test, border_px))
     before = d["curve"][0]
-    drift = {**_row(drift_cfg, d, before), "drift": DRIFT, "psnr_unmasked_before": before["psnr_unmasked"]}
+    drift = {**_row(drift_cfg, d, before), "drift": DRIFT, "psnr_unmasked_before": before["psnr_unmasked"],
+             "border_px": border_px, "border": d["regions"]["band"], "beyond_border": d["regions"]["far"],
+             "curve": [{k: r[k] for k in ("step", "psnr_masked", "psnr_unmasked")} for r in d["curve"]]}
     drift["ok"] = (drift["unmasked_drop_db"] <= DRIFT_GOAL["unmasked_drop_db"]
                    and drift["psnr_masked"] >= DRIFT_GOAL["psnr_masked"])
 
-    evals = sorted({int(round(s)) for s in np.linspace(0, opts.steps, opts.evals + 1)[1:]})
+    evals = evals_of(opts.steps)
     main_cfg = edit_config(opts, opts.steps, ms)
     main = run_edit(scene, state, masks, "analytic", main_cfg, test, evals, log=log)
     curve = main.pop("curve")

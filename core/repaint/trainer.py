@@ -44,7 +44,13 @@ from repaint_nerf.core.train.stage1 import target_image
 CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
 
 
-DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls the unmasked target
+DRIFT_TINT = (0.55, 0.25, 0.75)  # where RepaintConfig.analytic_drift pulls what the edit leaves unchanged
+UNCHANGED_TOL = 2.5 / 255  # an edited pixel this close to the original (every channel) is one the edit left alone
+
+
+def unchanged(edited: Tensor, original: Tensor, tol: float = UNCHANGED_TOL) -> Tensor:
+    """1 where the edited image (B, 3, H, W) matches the original within `tol` in every channel, else 0 (B, 1, H, W)."""
+    return ((edited - original).abs().amax(1, keepdim=True) <= tol).float()
 
 
 def default_resolution(width: int, height: int, device: torch.device) -> int:
@@ -196,13 +202,18 @@ class RepaintTrainer:
 
     def edited_targets(self) -> list[Tensor]:
         """The scene's edited/ views at the edit resolution, (1, 3, H, W) each, moved `analytic_drift` toward
-        DRIFT_TINT outside the mask (the analytic guidance's targets)."""
+        DRIFT_TINT where the edit leaves the original view alone (the analytic guidance's targets).
+
+        The drift stands in for a diffusion model repainting what the prompt does not ask for; like Stable
+        Diffusion it never sees the selection, so it paints the whole edited object wherever the mask ends and
+        drifts only what the edit leaves unchanged (within UNCHANGED_TOL of the original)."""
         targets = [target_image(_resize(im, self.size[1], self.size[0]), self.background).permute(2, 0, 1)[None]
                    for im in edited_images(self.scene)]
         if self.cfg.analytic_drift > 0:
             tint = torch.tensor(DRIFT_TINT, device=self.device).view(1, 3, 1, 1)
             targets = [t.to(self.device) for t in targets]
-            targets = [t + self.cfg.analytic_drift * (1.0 - m) * (tint - t) for t, m in zip(targets, self.masks)]
+            origs = [im.permute(2, 0, 1)[None] for im in self.images]
+            targets = [t + self.cfg.analytic_drift * unchanged(t, o) * (tint - t) for t, o in zip(targets, origs)]
         return targets
 
     def _build_clip(self, clip_path):
