@@ -274,12 +274,7 @@ class Engine:
         similarity = _np(self.selection.similarity(view.feature))
         auto = None
         if mode != "sub":  # saved with the selection, and the editor's slider starts at it
-            from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
-            from repaint_nerf.core.select.geometry import patch_anchors
-
-            auto = self.selection.auto_threshold = patch_auto_threshold(similarity, patch, view.depth, view.opacity)
-            self.selection.add_anchors(patch_anchors(patch_pixels(similarity.shape, patch), similarity, view.depth,
-                                                     view.opacity, view.camera, auto))
+            auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera)
         return PatchSelected(similarity, auto)
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:

@@ -277,24 +277,27 @@ def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
     clean = masks_for_views(field, None, cams, sel, cleanup=True, cache=cache, workspace=ws)
     assert len(cache) == len(cams)  # one render per view, shared by both calls
 
-    def iou(ms, gts):
-        inter = sum(int((m & g).sum()) for m, g in zip(ms, gts))
-        return inter / max(1, sum(int((m | g).sum()) for m, g in zip(ms, gts)))
-
     gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(len(cams))]
     both = [g | _ball_gt(cams, i, centers[1], 0.22).numpy() for i, g in enumerate(gts)]
-    assert iou(raw, both) > 0.85  # the 2D mask takes the look-alike too
-    assert iou(raw, gts) < 0.75
-    assert iou(clean, gts) > 0.85  # the 3D clean-up keeps only the patch's ball
+    assert _iou(raw, both) > 0.85  # the 2D mask takes the look-alike too
+    assert _iou(raw, gts) < 0.75
+    assert _iou(clean, gts) > 0.85  # the 3D clean-up keeps only the patch's ball
     saved = load_masks(ws.masks_dir)
     assert all(np.array_equal(a, b) for a, b in zip(saved, clean))
+
+
+def _free_camera(size=48):
+    """A camera between the ring's views, as the editor's free camera (not a training view)."""
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+
+    f = 0.5 * size / math.tan(0.45)
+    return Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, size / 2, size / 2, size, size)
 
 
 def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     """The editor's patch is drawn in a camera that is not a training view: its surface points (anchors) carry it
     into the training views, so the 3D clean-up drops the look-alike there too; without them nothing is seeded."""
     from repaint_nerf.core.render.renderer import RenderOptions
-    from repaint_nerf.core.scene.cameras import Cameras, look_at
     from repaint_nerf.core.select.autothreshold import patch_pixels
     from repaint_nerf.core.select.geometry import patch_anchors
     from repaint_nerf.core.select.masks import render_view_maps
@@ -302,8 +305,7 @@ def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
     field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
     cams = _ring_cameras()
-    f = 0.5 * 48 / math.tan(0.45)
-    free = Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, 24, 24, 48, 48)  # between ring views
+    free = _free_camera()
     opts = RenderOptions(max_samples=96)
     fm = render_view_maps(field, None, free, 0, opts)
     gt = _ball_gt(free, 0, centers[0], 0.22).numpy()
@@ -320,14 +322,10 @@ def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     sel.add_anchors(pts)
     seeded = masks_for_views(field, None, cams, sel, cleanup=True, cache=cache)
 
-    def iou(ms, gts):
-        inter = sum(int((m & g).sum()) for m, g in zip(ms, gts))
-        return inter / max(1, sum(int((m | g).sum()) for m, g in zip(ms, gts)))
-
     gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(len(cams))]
     both = [g | _ball_gt(cams, i, centers[1], 0.22).numpy() for i, g in enumerate(gts)]
-    assert iou(unseeded, both) > 0.85 and iou(unseeded, gts) < 0.75  # no seed: the look-alike stays
-    assert iou(seeded, gts) > 0.85
+    assert _iou(unseeded, both) > 0.85 and _iou(unseeded, gts) < 0.75  # no seed: the look-alike stays
+    assert _iou(seeded, gts) > 0.85
 
 
 def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_path):
@@ -336,15 +334,13 @@ def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_p
     from types import SimpleNamespace
 
     from repaint_nerf.core.engine import Engine
-    from repaint_nerf.core.scene.cameras import Cameras, look_at
 
     eng = Engine("cpu")
     eng.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
     centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
     eng.field, eng.grid = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]]), None
     eng.field.cfg = SimpleNamespace(feature_dim=3)
-    f = 0.5 * 48 / math.tan(0.45)
-    free = Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, 24, 24, 48, 48)
+    free = _free_camera()
     ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
     cy, cx = np.median(ys) / 48, np.median(xs) / 48
     eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05))

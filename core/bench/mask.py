@@ -160,27 +160,25 @@ class Evaluator:
         return out, sims
 
 
-    def editor_masks(self, view: int, rect, parts) -> tuple[list[np.ndarray], float]:
+    def editor_masks(self, view: int, rect, parts_list: list) -> tuple[list[list[np.ndarray]], float]:
         """The editor's way, in test views only: a patch `rect` (a Patch) drawn in test view `view` as in a free
         camera (not a training view: its surface points seed the others, Engine.select), masks of the other test
-        views at the patch's automatic threshold. Returns (masks of the other views, the threshold)."""
-        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
-        from repaint_nerf.core.select.geometry import patch_anchors
+        views at the patch's automatic threshold, once per geometry parts of `parts_list`. Returns (masks of the
+        other views per parts, the threshold)."""
         from repaint_nerf.core.select.masks import selection_seeds, shaped_masks
         from repaint_nerf.core.select.selection import Selection
 
         m = self.test[view]
         sel = Selection()
         sel.add_patch(m.feature, rect)
-        sim = sel.similarity(m.feature).float().numpy()
-        auto = patch_auto_threshold(sim, rect, m.depth, m.opacity)
         cams = self.test_cams.to("cpu")
-        sel.add_anchors(patch_anchors(patch_pixels(sim.shape, rect), sim, m.depth.numpy(), m.opacity.numpy(),
-                                      cams[view], auto))
+        auto = sel.anchor_patch(sel.similarity(m.feature).float().numpy(), rect, m.depth.numpy(), m.opacity.numpy(),
+                                cams[view])
         others = [i for i in range(len(self.test)) if i != view]
         maps, oc = [self.test[i] for i in others], cams[torch.tensor(others)]
         sims = [sel.similarity(v.feature) for v in maps]
-        return shaped_masks(sims, maps, oc, selection_seeds(sel, maps, oc), auto, parts), auto
+        seeds = selection_seeds(sel, maps, oc)
+        return [shaped_masks(sims, maps, oc, seeds, auto, parts) for parts in parts_list], auto
 
 
 def default_parts(ev: Evaluator):
@@ -201,8 +199,7 @@ def editor_iou(ev: Evaluator, gts: list[np.ndarray]) -> dict:
     view, (y0, y1, x0, x1) = place_patch(gts)
     rect = Patch(-1, x0, y0, x1, y1)
     others = [g for i, g in enumerate(gts) if i != view]
-    masks, auto = ev.editor_masks(view, rect, default_parts(ev))
-    plain, _ = ev.editor_masks(view, rect, GeometryParts.none())
+    (masks, plain), auto = ev.editor_masks(view, rect, [default_parts(ev), GeometryParts.none()])
     return {"iou": iou(masks, others), "iou_no_geometry": iou(plain, others), "view": view, "auto_threshold": auto}
 
 

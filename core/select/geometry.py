@@ -17,7 +17,7 @@ after growth each band pixel joins the side of its nearest non-band pixel.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -49,13 +49,18 @@ def depth_noise(w: np.ndarray, surface: np.ndarray) -> float:
     return 1.4826 * float(np.median(v)) if v.size else 0.0
 
 
+def inverse_depth(depth: np.ndarray, opacity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(inverse depth w (H, W) float64, 0 off the surface; surface (H, W) bool: opaque pixels with a depth)."""
+    z = np.asarray(depth, np.float64)
+    surface = z > 0 if opacity is None else (np.asarray(opacity) > MIN_OPACITY) & (z > 0)
+    return np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0), surface
+
+
 def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float = DEPTH_EDGE) -> np.ndarray:
     """Barrier pixels (bool (H, W)) of a z-depth map: far sides of depth discontinuities, and no surface.
     (On depth rougher than `rel` itself every pixel looks like an edge: see `fit_parts`.)"""
-    z = np.asarray(depth, np.float64)
-    surface = z > 0 if opacity is None else (np.asarray(opacity) > MIN_OPACITY) & (z > 0)
-    w = np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0)
-    edge = np.zeros(z.shape, bool)
+    w, surface = inverse_depth(depth, opacity)
+    edge = np.zeros(w.shape, bool)
     for axis in (0, 1):
         for step in (1, -1):
             near = np.roll(w, -step, axis)      # the neighbour on one side
@@ -223,15 +228,9 @@ def fit_parts(parts: GeometryParts, depths: list[np.ndarray], opacities: list[np
     The voxel clean-up, which needs only surface points, stays."""
     if not (parts.edges or parts.grow or parts.holes or parts.creases or parts.vote):
         return parts
-    noise = []
-    for d, o in zip(depths, opacities):
-        z = np.asarray(d, np.float64)
-        surface = (np.asarray(o) > MIN_OPACITY) & (z > 0)
-        if surface.sum() >= 16:
-            noise.append(depth_noise(np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0), surface))
+    noise = [depth_noise(w, surface) for w, surface in map(inverse_depth, depths, opacities) if surface.sum() >= 16]
     if noise and float(np.median(noise)) >= DEPTH_EDGE:
-        return GeometryParts(edges=False, grow=False, holes=False, cleanup3d=parts.cleanup3d, creases=False,
-                             vote=False)
+        return replace(GeometryParts.none(), cleanup3d=parts.cleanup3d)
     return parts
 
 

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from repaint_nerf.core.errors import UserError, WorkspaceError
 from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
-from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY
+from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY, GEOMETRY_NAMES
 from repaint_nerf.core.select.query import Patch, patch_query, text_query
 from repaint_nerf.core.workspace import atomic
 
@@ -59,6 +59,18 @@ class Selection:
         """Keep the field-space surface points (N, 3) of a positive patch drawn outside the training views
         (core.select.geometry.patch_anchors): they seed the training views' masks as a training-view patch does."""
         self.anchors.extend([round(float(x), 5) for x in p] for p in np.asarray(points, np.float32).reshape(-1, 3))
+
+    def anchor_patch(self, similarity: np.ndarray, patch, depth: np.ndarray, opacity: np.ndarray, camera) -> float:
+        """For a positive patch drawn in a view that is not a training view (the editor's free camera, `camera` at
+        the maps' size): its automatic threshold in that view (kept as `auto_threshold`) and its surface points at
+        that threshold (kept as anchors). Returns the threshold."""
+        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
+        from repaint_nerf.core.select.geometry import patch_anchors
+
+        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth, opacity)
+        self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
+                                       auto))
+        return auto
 
     def anchor_points(self) -> np.ndarray:
         """The anchors as a float32 (N, 3) array."""
@@ -118,19 +130,17 @@ class Selection:
     def from_dict(d: dict) -> "Selection":
         if d.get("format") != FORMAT_VERSION:
             raise ValueError(f"selection format {d.get('format')!r}, expected {FORMAT_VERSION}")
-        from repaint_nerf.core.select.geometry import GEOMETRY_NAMES
-
         anchors = [[float(x) for x in p] for p in d.get("anchors", [])]
         if any(len(p) != 3 for p in anchors):
             raise ValueError("an anchor point is not three numbers")
-
-        if d.get("geometry", "basic") not in GEOMETRY_NAMES:  # selections saved before it had the choice: basic
-            raise ValueError(f"unknown geometry {d.get('geometry')!r}, expected one of {', '.join(GEOMETRY_NAMES)}")
+        geometry = str(d.get("geometry", "basic"))  # selections saved before it had the choice: basic
+        if geometry not in GEOMETRY_NAMES:
+            raise ValueError(f"unknown geometry {geometry!r}, expected one of {', '.join(GEOMETRY_NAMES)}")
         return Selection(patches=[Patch.from_dict(p) for p in d["patches"]],
                          positives=[torch.tensor(q, dtype=torch.float32) for q in d["positives"]],
                          negatives=[torch.tensor(q, dtype=torch.float32) for q in d["negatives"]],
                          texts=list(d.get("texts", [])), threshold=check_threshold(d["threshold"]),
-                         cleanup=bool(d.get("cleanup", True)), geometry=str(d.get("geometry", "basic")),
+                         cleanup=bool(d.get("cleanup", True)), geometry=geometry,
                          teacher=str(d.get("teacher", "")),
                          auto_threshold=None if d.get("auto_threshold") is None
                          else check_threshold(d["auto_threshold"]),
