@@ -340,3 +340,34 @@ def test_text_query_threshold_splits_two_modes_and_ignores_empty_space():
     assert 0.45 < t < 0.7
     assert all(((s > t) & m).sum() == 64 for s, m in zip(sims, surf))
     assert text_auto_threshold([np.full((8, 8), 0.7, np.float32)]) == FALLBACK
+
+
+def test_attach_gives_border_pixels_to_the_surface_whose_depth_they_share():
+    """A disc at depth 2 before a plane at depth 3, its silhouette rendered as two blended one-pixel rings: the
+    inner ring (z 2.2, nearer the disc) joins the disc's mask, the outer ring (z 2.8, nearer the plane) and the
+    plane stay out; a ring pixel below the threshold is not a candidate and stays out; with no surface behind
+    (background), the blended ring joins."""
+    import cv2
+
+    from repaint_nerf.core.select.geometry import attach
+
+    h = w = 48
+    yy, xx = np.mgrid[0:h, 0:w]
+    disc = np.hypot(yy - 24 + 0.5, xx - 24 + 0.5) < 10
+
+    def outer_ring(m, kernel):
+        return (cv2.dilate(m.astype(np.uint8), np.array(kernel, np.uint8)) > 0) & ~m
+
+    ring1 = outer_ring(disc, [[0, 1, 0], [1, 1, 1], [0, 1, 0]])  # the pixels straddling the silhouette
+    ring2 = outer_ring(disc | ring1, np.ones((3, 3)))
+    depth = np.where(disc, 2.0, np.where(ring1, 2.2, np.where(ring2, 2.8, 3.0))).astype(np.float32)
+    opacity = np.ones((h, w), np.float32)
+    cand = np.ones((h, w), bool)
+    cand[24, 30:40] = False  # a few ring pixels the similarity does not pick
+    out = attach(disc, cand, depth, opacity)
+    assert (out == (disc | (ring1 & cand))).all()
+    # the same rings before empty space: the blend pixels join, nothing else
+    opacity_bg = np.where(disc | ring1, 1.0, 0.0).astype(np.float32)
+    assert (attach(disc, np.ones((h, w), bool), depth, opacity_bg) == (disc | ring1)).all()
+    # nothing to attach: the mask comes back as it was
+    assert (attach(disc, disc, depth, opacity) == disc).all()

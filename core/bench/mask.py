@@ -5,7 +5,7 @@ workspace, a patch placed automatically inside the object in one training view (
 ground-truth mask, a small square), then mask IoU over all test views: at the automatic threshold
 (core.select.autothreshold; this is `final.iou`), at the fixed 0.5, at the best threshold of a sweep,
 with and without each geometry part (core.select.geometry: depth edges, seeded growth, holes, the voxel
-3D clean-up), against training steps, with and without depth supervision (sparse/triangulated priors,
+3D clean-up, creases, the views' vote, border attachment), against training steps, with and without depth supervision (sparse/triangulated priors,
 never the ground-truth depth); patch-to-mask time on a 256x256 feature map and MB of cached features.
 Returns dicts and picture arrays; the CLI driver is app/bench/mask.py.
 """

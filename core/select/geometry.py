@@ -14,6 +14,12 @@ from any convex object: a concave crease. As in locally convex connected patches
 2014), a crease pixel is one where the normals a few pixels apart turn towards each other by more than
 `CREASE` ((n_b - n_a).(P_b - P_a)/|P_b - P_a| < -CREASE); the band of such pixels is a barrier, and
 after growth each band pixel joins the side of its nearest non-band pixel.
+
+A barrier belongs to neither side. On a trained field it also falls inside objects: a silhouette pixel
+blends the object's depth with what lies behind, and texture and highlights leave grooves in the depth
+of a printed label. So once the masks are grown, every candidate pixel on a mask's border joins it when
+its inverse depth is nearer to its neighbours inside than to its other neighbours outside (`attach`);
+the far side of a real depth edge stays out, as it lies at the depth of the surface behind.
 """
 from __future__ import annotations
 
@@ -33,6 +39,8 @@ CREASE = 0.25  # normals turning towards each other by ~15 degrees or more (2 si
 CONTINUOUS = 0.05  # inverse depth changing under 5% a pixel: one surface (a floor at a grazing angle ~1%)
 CREASE_MIN = 2.0  # a crease component must span twice the band's width: a contact line is a line, not a speck
 CREASE_STEP = 2  # pixels each side: the band is ~2 * CREASE_STEP + 1 wide, wide enough to have no diagonal gap
+ATTACH_ROUNDS = 8  # border pixels `attach` adds at most, one ring a round. Five trained 128-px presets (600 steps)
+# gained from 1 to 6 rounds (toys 0.633 -> 0.728 -> 0.773), held from 8 to 12 and bread lost 0.007 at 20
 
 
 def depth_noise(w: np.ndarray, surface: np.ndarray) -> float:
@@ -189,11 +197,50 @@ def _hole_behind(hole: np.ndarray, mask: np.ndarray, depth: np.ndarray) -> bool:
     return wr - wh > HOLE_DEPTH * wr
 
 
+_RING4 = np.array([[0, 1, 0], [1, 0, 1], [0, 1, 0]], np.float32)
+
+
+def _neighbour_mean(values: np.ndarray, where: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean of `values` over each pixel's 4-neighbours in `where`, how many there are)."""
+    total = cv2.filter2D(np.where(where, values, 0.0).astype(np.float32), -1, _RING4, borderType=cv2.BORDER_CONSTANT)
+    count = cv2.filter2D(where.astype(np.float32), -1, _RING4, borderType=cv2.BORDER_CONSTANT)
+    return total / np.maximum(count, 1.0), count
+
+
+def attach(mask: np.ndarray, candidates: np.ndarray, depth: np.ndarray, opacity: np.ndarray,
+           rounds: int = ATTACH_ROUNDS) -> np.ndarray:
+    """`mask` with the candidate pixels on its border that belong to its surface (module docstring): a surface
+    pixel 4-adjacent to the mask joins when its inverse depth is nearer to the mean of its neighbours in the mask
+    than to the mean of its other surface neighbours outside (or it has none: the background); one ring a round."""
+    out = np.asarray(mask, bool).copy()
+    ys, xs = np.nonzero(out)
+    if not ys.size:
+        return out
+    pad = rounds + 2  # what the rounds can reach, and the neighbours they read
+    box = (slice(max(ys.min() - pad, 0), ys.max() + pad + 1), slice(max(xs.min() - pad, 0), xs.max() + pad + 1))
+    w, surface = inverse_depth(np.asarray(depth)[box], np.asarray(opacity)[box])
+    w = w.astype(np.float32)
+    m = out[box]  # a view: rounds write into `out`
+    ok = np.asarray(candidates, bool)[box] & surface
+    for _ in range(rounds):
+        inside, n_in = _neighbour_mean(w, m)
+        ring = (n_in > 0) & ~m & ok
+        if not ring.any():
+            break
+        outside, n_out = _neighbour_mean(w, ~m & ~ring & surface)
+        take = ring & ((n_out == 0) | (np.abs(w - inside) < np.abs(w - outside)))
+        if not take.any():
+            break
+        m |= take
+    return out
+
+
 @dataclass(frozen=True)
 class GeometryParts:
     """Which geometry parts a mask uses (bench mask measures each): depth-edge barriers, seeded growth
     with seeds carried between views through the surface points, hole filling, the voxel 3D clean-up of
-    cleanup3d (applied last), concave-crease barriers, and the views' vote on each other's pixels."""
+    cleanup3d (applied last), concave-crease barriers, the views' vote on each other's pixels, and the
+    border pixels' attachment by depth (`attach`)."""
 
     edges: bool = True
     grow: bool = True
@@ -201,32 +248,35 @@ class GeometryParts:
     cleanup3d: bool = True
     creases: bool = True
     vote: bool = True
+    attach: bool = True
 
     @staticmethod
     def none() -> "GeometryParts":
-        return GeometryParts(False, False, False, False, False, False)
+        return GeometryParts(False, False, False, False, False, False, False)
 
     def names(self) -> list[str]:
-        return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote") if getattr(self, k)]
+        return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote", "attach") if getattr(self, k)]
 
 
 # 'basic' is the voxel clean-up only; 'full' (the default) adds every other part, where the depth allows it
 # (fit_parts). At the patch's automatic threshold on trained 128-px fields of the photo-like presets (600 steps)
-# basic gave bread 0.066, lemon 0.264, toys 0.149 and full 0.893, 0.820, 0.633; on tests/test_selection.py's tiny
+# basic gave bread 0.066, lemon 0.264, toys 0.149 and full 0.893, 0.820, 0.633 (0.936, 0.931, 0.776 with
+# `attach`, which also took demo 0.965 -> 0.984 and thin 0.845 -> 0.930); on tests/test_selection.py's tiny
 # 32-px field full gave 0.734 against basic's 0.944 (its rough depth cut the sphere with edges): fit_parts now
 # turns the 2D parts off there.
-BASIC_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False)
+BASIC_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False,
+                            attach=False)
 FULL_PARTS = GeometryParts()
 GEOMETRY_NAMES = ("basic", "full")
 DEFAULT_GEOMETRY = "full"
 
 
 def fit_parts(parts: GeometryParts, depths: list[np.ndarray], opacities: list[np.ndarray]) -> GeometryParts:
-    """`parts` without the 2D geometry (edges, growth, holes, creases, vote) when the views' depth is too rough
+    """`parts` without the 2D geometry (edges, growth, holes, creases, vote, attach) when the views' depth is too rough
     for it: its median noise (`depth_noise`) reaches `DEPTH_EDGE`, so no depth step can be told from the
     roughness (a 32-px trained field: ~3%, where depth edges cut its objects into specks; 128-px fields ~0.7%).
     The voxel clean-up, which needs only surface points, stays."""
-    if not (parts.edges or parts.grow or parts.holes or parts.creases or parts.vote):
+    if not (parts.edges or parts.grow or parts.holes or parts.creases or parts.vote or parts.attach):
         return parts
     noise = [depth_noise(w, surface) for w, surface in map(inverse_depth, depths, opacities) if surface.sum() >= 16]
     if noise and float(np.median(noise)) >= DEPTH_EDGE:

@@ -175,7 +175,7 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
     pixels [(view, bool (H, W))] (`selection_seeds`); the one path the CLI, the editor and bench mask share."""
     from repaint_nerf.core.select.cleanup3d import cleanup_masks
-    from repaint_nerf.core.select.geometry import geometric_masks
+    from repaint_nerf.core.select.geometry import attach, geometric_masks
 
     cams = cameras.to("cpu")
     if parts.edges or parts.grow or parts.holes:
@@ -186,7 +186,11 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
         masks = [s.cpu() > threshold for s in sims]
     if parts.cleanup3d and seeds:
         masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cams, seeds)
-    return [m.cpu().numpy().astype(bool) for m in masks]
+    out = [m.cpu().numpy().astype(bool) for m in masks]
+    if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
+        out = [attach(m, s.float().cpu().numpy() > threshold, v.depth.numpy(), v.opacity.numpy())
+               for m, s, v in zip(out, sims, maps)]
+    return out
 
 
 def mask_png(mask: np.ndarray) -> bytes:
