@@ -265,6 +265,7 @@ def test_orbit_changes_the_image(editor, artifacts_dir):
 def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, artifacts_dir):
     import cv2
 
+    run_until(editor, lambda: full_frame(editor))  # the viewport has its size (also when run on its own)
     editor.state.tool = "select"
     ox, oy = editor.image_origin
     w, h = editor.view_size
