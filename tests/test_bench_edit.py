@@ -23,6 +23,7 @@ def test_border_regions_split_the_unmasked_pixels_into_a_band_and_the_rest():
 
 def test_bench_edit_drift_reports_its_curve_and_border_split(scene_factory, tmp_path, capsys):
     from repaint_nerf.app.cli import main
+    from repaint_nerf.core.bench.edit import DRIFT_GOAL
     from repaint_nerf.core.repaint.config import RepaintConfig
 
     scene = scene_factory("demo", size=16, views=6, test_views=2)
@@ -37,8 +38,12 @@ def test_bench_edit_drift_reports_its_curve_and_border_split(scene_factory, tmp_
     assert [r["step"] for r in d["curve"]] == [0, 2, 4]
     assert d["psnr_masked"] == d["curve"][-1]["psnr_masked"]
     assert d["unmasked_drop_db"] == d["psnr_unmasked_before"] - d["psnr_unmasked"]
+    # the verdict is issue 16's goal for the defaults, both halves
+    assert d["ok"] == (d["unmasked_drop_db"] <= DRIFT_GOAL["unmasked_drop_db"]
+                       and d["psnr_masked"] >= DRIFT_GOAL["psnr_masked"])
     assert d["border_px"] == 1  # 16 px / 32, at least one
     for part in (d["border"], d["beyond_border"]):
         assert part["drop_db"] == part["psnr_before"] - part["psnr"]
     text = capsys.readouterr().out
     assert "drop within 1 px of the object" in text and "masked dB along the edit" in text
+    assert ("-> ok" if d["ok"] else "-> NOT ok") in text
