@@ -162,6 +162,30 @@ def test_seconds_bounds_the_whole_train_command(scene_factory, tmp_path, capsys)
     assert took < 12.0 + 5.0, took  # one step and the saves may pass the line; the closing work does not
 
 
+def test_closing_evaluation_of_a_short_train_keeps_to_its_share(scene_factory, monkeypatch, capsys):
+    """`train`'s closing evaluation after a short training run is given EVAL_SHARE of the seconds trained (not
+    what is left of --seconds); a view that would not end within it is skipped and said (views made to take
+    0.4 of the allowance each: two fit)."""
+    from repaint_nerf.app.commands.train import closing_evaluation
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train import stage1
+    from repaint_nerf.core.train.budget import EVAL_SHARE, CommandBudget
+
+    scene = load_scene(scene_factory("demo", size=32, views=4, test_views=12))
+    tr = stage1.Stage1Trainer(scene, None, stage1.TrainConfig(seed=0, rays_per_batch=256, grid_resolution=16))
+    tr.train(steps=3)
+    budget = CommandBudget(3600.0)  # --seconds: plenty left, so the share is the limit
+    trained = 20.0  # as if the run had trained 20 s
+    allowed = EVAL_SHARE * trained
+    _views_take(monkeypatch, 0.4 * allowed)
+    ev = closing_evaluation(tr, budget, False, trained)
+    assert ev["views"] == 2 and ev["skipped_views"] == stage1.EVAL_VIEWS - 2
+    assert ev["seconds"] == pytest.approx(0.8 * allowed)
+    err = capsys.readouterr().err
+    assert f"skipped {ev['skipped_views']} of the evaluation's {stage1.EVAL_VIEWS} views" in err
+    assert f"at most 10% of the training time ({allowed:.1f} s of {trained:.1f} s)" in err
+
+
 @pytest.mark.parametrize("value", [-1, 4, 2.5, "x"])
 def test_bad_max_size_is_a_user_error(tmp_path, value):
     from repaint_nerf.core.errors import UserError
@@ -181,6 +205,11 @@ def test_march_budget_ramps_coarse_to_fine():
     assert march_budget(128, 1024, 256, 256) == 512  # geometric: halfway in steps, halfway in octaves
     assert march_budget(0, 1024, 0, 256) == 1024  # off
     assert march_budget(0, 128, 256, 256) == 128  # a budget below the early one is kept
+    # keyed to the fog: the early budget until the step it cleared, then the same ramp from there
+    assert [march_budget(s, 1024, 256, 256, 100) for s in (0, 100, 228, 356)] == [256, 256, 512, 1024]
+    # still fog: held until the grid's warm-up ends (the ramp starts there at the latest)
+    assert [march_budget(s, 1024, 256, 256, None) for s in (255, 256, 384, 512)] == [256, 256, 512, 1024]
+    assert march_budget(384, 1024, 256, 256, 300) == 512  # cleared after the warm-up: ramps from its end
 
 
 def test_early_steps_of_a_foggy_field_march_the_early_budget(scene_factory):
@@ -196,8 +225,78 @@ def test_early_steps_of_a_foggy_field_march_the_early_budget(scene_factory):
         tr = Stage1Trainer(scene, None, cfg)
         info = tr.step()
         spr[early] = info["candidates_per_ray"]
-        assert tr.march_samples == (512 if early == 0 else round(64 * 8 ** (1 / 256)))
+        assert tr.fog_cleared_step is None  # the filter kept every candidate: fog
+        assert tr.march_samples == (512 if early == 0 else 64)  # held while the field is fog
     assert spr[64] <= 64 and spr[0] > 4 * spr[64]
+
+
+def test_march_ramp_starts_when_the_fog_clears_and_resumes_there(scene_factory):
+    """A field whose filter pass drops candidates (rays reach the transmittance threshold) has cleared: the ramp
+    starts at that step, whatever the step count; a checkpoint keeps the step, so a resumed run and a render of
+    the version march at the trained budget; files from before it was recorded ramped from step 0."""
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.train.header import CheckpointHeader
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig, march_budget
+
+    scene = load_scene(scene_factory("demo", size=32, views=4, test_views=2))
+    cfg = TrainConfig(seed=0, rays_per_batch=256, grid_resolution=16, max_samples=512, early_max_samples=64,
+                      grid_warmup_steps=32, grid_update_every=4)
+    fog, opaque = Stage1Trainer(scene, None, cfg), Stage1Trainer(scene, None, cfg)
+    with torch.no_grad():
+        opaque.field.trunk_out.bias[0] += 12.0  # density e^12 everywhere: every ray ends in its first samples
+    for _ in range(6):
+        fog.step(), opaque.step()
+    assert fog.fog_cleared_step is None and fog.march_samples == 64
+    assert opaque.fog_cleared_step == 0 and opaque.filter_kept < cfg.one_pass_kept
+    assert opaque.march_samples == march_budget(6, 512, 64, 32, 0) > 64
+    for tr in (fog, opaque):
+        header = CheckpointHeader.from_dict(tr.checkpoint().info.to_dict())
+        assert header.fog_cleared_step == tr.fog_cleared_step and header.max_samples == tr.march_samples
+        again = Stage1Trainer(scene, None, cfg)
+        again.load(tr.checkpoint())
+        assert again.fog_cleared_step == tr.fog_cleared_step and again.march_samples == tr.march_samples
+    old = fog.checkpoint().info.to_dict()
+    old.pop("march")
+    assert CheckpointHeader.from_dict(old).max_samples == march_budget(6, 512, 64, 32, 0)  # ramped from step 0
+
+
+def test_time_limited_evaluation_shrinks_its_grid_and_skips_views(trainer_160, monkeypatch):
+    """An evaluation given `seconds` sizes its first view from the training step's seconds per ray (a smaller grid
+    when the full one would not fit) and starts a view only when the slowest so far would still end in time."""
+    from repaint_nerf.core.train import stage1
+    from repaint_nerf.core.train.stage1 import EVAL_GRID, EVAL_GRID_MIN, eval_grid_side
+
+    assert eval_grid_side(10.0, 1e-3) == EVAL_GRID  # 48^2 pixels x 1 ms = 2.3 s: fits
+    assert eval_grid_side(0.5, 1e-3) == 22  # the largest square of at most 500 pixels
+    assert eval_grid_side(0.01, 1e-3) == EVAL_GRID_MIN and eval_grid_side(0.5, 0.0) == EVAL_GRID
+    assert eval_grid_side(float("inf"), 1.0) == EVAL_GRID
+    tr = trainer_160
+    tr.ray_seconds = 1e-3
+    ev = tr.evaluate(seconds=60.0)
+    assert ev["grid"] == EVAL_GRID and ev["views"] == stage1.EVAL_VIEWS and not ev["skipped_views"]
+    _views_take(monkeypatch, 0.2)
+    ev = tr.evaluate(seconds=0.5)
+    assert ev["grid"] == 22 and ev["pixels"] == ev["views"] * 22 * 22
+    # 0.2 s, then 0.2 + 0.2 <= 0.5: a second view; 0.4 + 0.2 > 0.5: the rest skipped
+    assert ev["views"] == 2 and ev["skipped_views"] == stage1.EVAL_VIEWS - 2 and ev["seconds"] == pytest.approx(0.4)
+
+
+def _views_take(monkeypatch, seconds: float) -> None:
+    """Make each view of stage 1's bounded evaluation take exactly `seconds` on the clock it reads (a clock that
+    only those views advance), so time limits are tested as behaviour, not as the machine's speed."""
+    import types
+
+    from repaint_nerf.core.train import stage1
+
+    now = [time.perf_counter()]
+    real = stage1.eval_pixels
+
+    def view(*a):
+        now[0] += seconds
+        return real(*a)
+
+    monkeypatch.setattr(stage1, "time", types.SimpleNamespace(perf_counter=lambda: now[0]))
+    monkeypatch.setattr(stage1, "eval_pixels", view)
 
 
 def test_untrained_field_at_256_px_renders_in_4x_the_work_of_128_px(scene_factory):

@@ -149,6 +149,21 @@ def test_schedule():
     assert w.factor(0.0) == pytest.approx(0.1) and w.factor(0.2) == 1.0
 
 
+def test_lr_progress_follows_steps_and_a_time_budget_anneals_its_end():
+    """Keyed to steps, a slower run (a larger image) has the same rate at the same step; a time budget only brings
+    the decay to its end over its last `anneal` share; anneal 1.0 is the old rule (by the seconds throughout)."""
+    from repaint_nerf.core.train.schedule import training_progress as tp
+
+    fast, slow = tp(500, 40.0, None, 300.0, 20000, 0.25), tp(500, 200.0, None, 300.0, 20000, 0.25)
+    assert fast == slow == pytest.approx(500 / 20000)
+    assert tp(500, 262.5, None, 300.0, 20000, 0.25) == pytest.approx(0.5)  # halfway through the last quarter
+    assert tp(500, 300.0, None, 300.0, 20000, 0.25) == 1.0 and tp(500, 900.0, None, 300.0, 20000, 0.25) == 1.0
+    assert tp(500, 200.0, None, 300.0, 20000, 1.0) == pytest.approx(200 / 300)  # by time throughout
+    assert tp(500, 200.0, 1000, None, 20000, 0.25) == pytest.approx(0.5)  # a step budget
+    assert tp(800, 10.0, 1000, 300.0, 20000, 0.25) == pytest.approx(0.8)  # both: whichever is further
+    assert tp(40000, 0.0, None, None, 20000, 0.25) == 1.0  # open-ended: the horizon, clamped
+
+
 def test_progress_bar_text():
     buf = io.StringIO()
     bar = ProgressBar(total_steps=100, stream=buf)

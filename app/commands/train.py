@@ -141,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print("no checkpoint to resume from; starting from scratch")
     train_s = budget.training_seconds()  # what loading left, less the closing reserve
+    trained_before = trainer.train_seconds
     if train_s is not None:
         train_s = trainer.train_seconds + max(train_s, 1e-3)  # a total: a resumed run counts its past seconds
     trainer.plan(args.steps, train_s)
@@ -188,18 +189,32 @@ def run(args: argparse.Namespace) -> int:
     version = trainer.save_version("reconstruction")
     print(f"trained {trainer.step_count} steps in {trainer.train_seconds:.1f} s "
           f"({trainer.step_count / max(trainer.train_seconds, 1e-9):.1f} steps/s); saved version {version.id}")
-    closing_evaluation(trainer, budget, args.full_eval)
+    closing_evaluation(trainer, budget, args.full_eval, trainer.train_seconds - trained_before)
     return 0
 
 
-def closing_evaluation(trainer, budget, full: bool) -> dict | None:
-    """The closing test evaluation within the command's budget: bounded by default; the full one when asked
-    and when its estimate (from the bounded one's seconds per pixel) fits. Prints what it did or skipped."""
+def closing_evaluation(trainer, budget, full: bool, trained_s: float | None = None) -> dict | None:
+    """The closing test evaluation within the command's budget: bounded by default, and to EVAL_SHARE of the
+    `trained_s` seconds this command trained (its grid and views sized from the training step's time); the full
+    one when asked and when its estimate (from the bounded one's seconds per pixel) fits. Prints what it did or
+    skipped."""
+    from repaint_nerf.core.train.budget import EVAL_SHARE
+    from repaint_nerf.core.train.stage1 import EVAL_GRID
+
     if budget.left() <= 0:
         print(budget.skip("the closing evaluation"), file=sys.stderr)
         return None
-    ev = trainer.evaluate(with_ssim=True, deadline=budget.deadline())
+    allowed = None if trained_s is None else budget.evaluation_seconds(trained_s)
+    by_share = allowed is not None and allowed < budget.left()  # else the --seconds budget is the tighter limit
+    ev = trainer.evaluate(with_ssim=True, deadline=budget.deadline(), seconds=allowed)
     _print_eval(ev)
+    grid = ev.get("grid") or EVAL_GRID
+    if ev["skipped_views"] or grid < EVAL_GRID:
+        what = f"{ev['skipped_views']} of the evaluation's {ev['views'] + ev['skipped_views']} views"
+        if grid < EVAL_GRID:
+            what += f" and all but a {grid}x{grid} grid of each view's {EVAL_GRID}x{EVAL_GRID} pixels"
+        print(f"skipped {what}: the closing evaluation takes at most {EVAL_SHARE:.0%} of the training time "
+              f"({allowed:.1f} s of {trained_s:.1f} s)" if by_share else budget.skip(what), file=sys.stderr)
     if full:
         cams = trainer.scene.field_cameras(ev["split"])
         total_px = float((cams.width * cams.height).sum())
@@ -210,8 +225,6 @@ def closing_evaluation(trainer, budget, full: bool) -> dict | None:
         else:
             print(budget.skip(f"the full evaluation (about {estimate:.0f} s for {ev['views_total']} views)"),
                   file=sys.stderr)
-    if ev["skipped_views"]:
-        print(budget.skip(f"{ev['skipped_views']} of the evaluation's views"), file=sys.stderr)
     return ev
 
 

@@ -142,6 +142,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         "steps_early": early["steps"],
         "max_samples": trainer.cfg.max_samples,
         "early_max_samples": trainer.cfg.early_max_samples,
+        "fog_cleared_step": trainer.fog_cleared_step,  # the march ramp's start (stage1.march_budget)
         "final_psnr": closing["psnr"],
         "final_ssim": closing["ssim"],
         "load_seconds": load_seconds,

@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 
 CLOSING_RESERVE = 0.1  # fraction of the budget kept for saving and the closing evaluation
+EVAL_SHARE = 0.1  # the closing evaluation's most seconds, as a share of the command's training seconds (issue 18)
 
 
 class CommandBudget:
@@ -42,6 +43,11 @@ class CommandBudget:
         if self.seconds is None:
             return None
         return max(0.0, self.left() - self.reserve * self.seconds)
+
+    def evaluation_seconds(self, trained_s: float, share: float = EVAL_SHARE) -> float:
+        """Seconds the closing evaluation may take: `share` of the seconds this command trained, within what is
+        left of the budget (any budget, or none: the evaluation never outweighs the training it reports on)."""
+        return min(self.left(), share * max(0.0, trained_s))
 
     def fits(self, estimate_s: float) -> bool:
         """Whether work estimated at `estimate_s` seconds ends before the deadline."""

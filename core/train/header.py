@@ -4,7 +4,8 @@ Both trainers write a `CheckpointHeader` and every reader (engine, commands, ben
 JSON keys live only here. Each file records its format version; `from_dict` reads every older version
 (upgrading it in memory) and rejects newer ones with a WorkspaceError. History:
   1: kind, step, train_seconds, field_config, train_config, grid, optim, budget, scene, edit
-  2: + history (the stage-1 loss/PSNR curve, so a reopened workspace plots its past)
+  2: + history (the stage-1 loss/PSNR curve, so a reopened workspace plots its past);
+     + optional march.fog_cleared_step (older readers ignore it; files without it ramped from step 0)
 """
 from __future__ import annotations
 
@@ -84,7 +85,15 @@ class CheckpointHeader:
     budget_seconds: float | None = None
     edit: EditFacts | None = None
     history: TrainingHistory = field(default_factory=TrainingHistory)
+    # the step stage 1's fog cleared (Stage1Trainer.fog_cleared_step; None = not yet); -1 = not recorded (a file
+    # from before it was: its march ramp started at step 0)
+    fog_cleared_step: int | None = -1
     format: int = FORMAT_VERSION
+
+    @property
+    def march_start(self) -> int | None:
+        """The fog-cleared step to resume with (0 for files that did not record it: they ramped from step 0)."""
+        return 0 if self.fog_cleared_step == -1 else self.fog_cleared_step
 
     def field_cfg(self):
         """The FieldConfig the field was built with (unknown keys from newer versions ignored)."""
@@ -114,7 +123,8 @@ class CheckpointHeader:
             return full
         from repaint_nerf.core.train.stage1 import march_budget
 
-        return march_budget(self.step, full, int(tc["early_max_samples"]), int(tc.get("grid_warmup_steps", 256)))
+        return march_budget(self.step, full, int(tc["early_max_samples"]), int(tc.get("grid_warmup_steps", 256)),
+                            self.march_start)
 
     def to_dict(self) -> dict[str, Any]:
         d = {"format": FORMAT_VERSION, "kind": self.kind, "step": int(self.step),
@@ -123,6 +133,8 @@ class CheckpointHeader:
              "scene": None if self.scene is None else dataclasses.asdict(self.scene),
              "budget": {"steps": self.budget_steps, "seconds": self.budget_seconds},
              "history": self.history.to_dict()}
+        if self.kind == STAGE1 and self.fog_cleared_step != -1:
+            d["march"] = {"fog_cleared_step": self.fog_cleared_step}
         if self.train_config is not None:
             d["train_config"] = self.train_config
         if self.optim is not None:
@@ -147,6 +159,7 @@ class CheckpointHeader:
                 optim=d.get("optim"), budget_steps=budget.get("steps"), budget_seconds=budget.get("seconds"),
                 edit=None if not edit else EditFacts(**edit),
                 history=TrainingHistory.from_dict(d.get("history")),  # format 1 had none
+                fog_cleared_step=(d.get("march") or {}).get("fog_cleared_step", -1),
                 format=fmt)
         except (KeyError, TypeError, ValueError) as exc:
             raise WorkspaceError(f"the checkpoint header is malformed ({exc.__class__.__name__}: {exc})", where,

@@ -30,7 +30,7 @@ from repaint_nerf.core.train.header import STAGE1, CheckpointHeader, GridFacts, 
 from repaint_nerf.core.train.health import SpikeDetector
 from repaint_nerf.core.train.history import TrainingHistory
 from repaint_nerf.core.train.metrics import mse_to_psnr, psnr, ssim
-from repaint_nerf.core.train.schedule import LRSchedule
+from repaint_nerf.core.train.schedule import LRSchedule, training_progress
 
 CHECKPOINT_NAME = "stage1.safetensors"
 # the bounded evaluation (Stage1Trainer.evaluate): its cost is the same at any image size. 8 x 48^2 = 18k rays,
@@ -41,6 +41,7 @@ EVAL_VIEWS = 8
 # (SSIM's 11-px window fits). A 48-px crop instead covered 14% of a 128-px view but 3.5% of a 256-px one, often
 # only the transparent background there (bench scale on the 256-px demo: 'inf' dB), so sizes did not compare
 EVAL_GRID = 48
+EVAL_GRID_MIN = 16  # the smallest grid an evaluation with a time limit shrinks to (SSIM's 11-px window fits)
 EVAL_SAMPLE_CAP = 128  # samples per ray; see RenderOptions.sample_cap
 
 
@@ -56,7 +57,10 @@ class TrainConfig:
     schedule: str = "exp"  # see LRSchedule
     lr_final_factor: float = 0.1
     warmup: float = 0.0
-    horizon_steps: int = 20000  # schedule length when a run has neither a step nor a time budget
+    horizon_steps: int = 20000  # schedule length in steps when a run has no step budget
+    # the LR decay follows the step count; a time budget's last `lr_anneal` share brings it to its end
+    # (schedule.training_progress; 1.0 = decay by the seconds throughout)
+    lr_anneal: float = 0.25
     color_loss: str = "mse"  # or "huber"
     huber_delta: float = 0.1
     lambda_feature: float = 1.0  # paper Eq. s1
@@ -66,8 +70,8 @@ class TrainConfig:
     perturb: bool = True
     t_threshold: float = 1e-4
     max_samples: int = 0  # steps across the cube's diagonal; 0 = auto (see sample_budget)
-    # coarse-to-fine marching (see march_budget): training starts at this many steps across the diagonal and
-    # reaches max_samples at the end of the grid's warm-up (0 = max_samples from the first step)
+    # coarse-to-fine marching (see Stage1Trainer.march_samples): training marches this many steps across the
+    # diagonal while the field is fog, then grows to max_samples over grid_warmup_steps (0 = max_samples throughout)
     early_max_samples: int = 256
     grid_resolution: int = 0  # occupancy cells per axis; 0 = auto (see grid_resolution_for)
     grid_cascades: int = 1
@@ -75,7 +79,7 @@ class TrainConfig:
     grid_warmup_steps: int = 256  # instant-ngp: 256 (every cell evaluated per update until then: costly on CPU)
     # skip the density-only filter pass (RenderOptions.one_pass) while it keeps at least this share of its
     # candidates: a foggy field, where every sample is kept and the pass is pure cost. Measured again at each grid
-    # update; > 1 = never skip
+    # update; > 1 = never skip. The first filtered step below it ends the fog for the march ramp (march_budget)
     one_pass_kept: float = 0.99
     grid_update_spread: bool = False  # spread each grid update over its period's steps (the editor: even steps)
     # once per grid update the worst-rendered rays of the batch reopen the pruned cells in front of their
@@ -135,18 +139,24 @@ def sample_budget(image_side: int) -> int:
     return int(min(1024, max(128, 2 * image_side)))
 
 
-def march_budget(step: int, full: int, early: int, ramp_steps: int) -> int:
-    """Steps across the diagonal for training step `step`: `early` at step 0, growing geometrically to `full` at
-    `ramp_steps` (coarse to fine; never above `full`; `early` <= 0 = `full` throughout).
+def march_budget(step: int, full: int, early: int, ramp_steps: int, fog_cleared: int | None = 0) -> int:
+    """Steps across the diagonal for training step `step`: `early` until the ramp's start, then growing
+    geometrically to `full` over `ramp_steps` steps (coarse to fine; never above `full`; `early` <= 0 = `full`
+    throughout). The ramp starts at step `fog_cleared` (None = not yet), at the latest at step `ramp_steps`.
 
     Why: an untrained field is fog, nothing reaches the transmittance threshold, so every sample of every ray
     up to the far bound is kept and differentiated; their count is the step count, which grows with the image
-    (sample_budget). Until the occupancy grid has pruned the fog (its warm-up) the field holds no detail a
-    finer step would resolve, so the early steps march at the budget of a 128-px view whatever the image size.
+    (sample_budget). While the field is fog it holds no detail a finer step would resolve, so it marches at the
+    budget of a 128-px view whatever the image size; the ramp starts when the fog clears (the first training
+    step whose filter pass dropped candidates: Stage1Trainer.fog_cleared_step), so a size whose fog lasts more
+    steps does not pay for a finer march in it; at the latest at the end of the grid's warm-up (`ramp_steps`).
     """
-    if early <= 0 or early >= full or step >= ramp_steps:
+    start = ramp_steps if fog_cleared is None else min(fog_cleared, ramp_steps)
+    if early <= 0 or early >= full or step >= start + ramp_steps:
         return full
-    return int(round(early * (full / early) ** (step / max(1, ramp_steps))))
+    if step <= start:
+        return early
+    return int(round(early * (full / early) ** ((step - start) / max(1, ramp_steps))))
 
 
 def field_config_from_dict(d: dict):
@@ -244,6 +254,8 @@ class Stage1Trainer:
         self.profile = False
         self.last_times: dict = {}
         self.filter_kept = 0.0  # share of its candidates the last filtered step kept (see TrainConfig.one_pass_kept)
+        self.fog_cleared_step: int | None = None  # the first step whose filter dropped candidates (march_samples)
+        self.ray_seconds = 0.0  # the last step's seconds per ray: sizes a time-limited evaluation (evaluate)
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
         if not self.cfg.lambda_feature:
@@ -385,18 +397,12 @@ class Stage1Trainer:
     def march_samples(self) -> int:
         """Steps across the diagonal the field is trained and rendered at now (coarse to fine: march_budget)."""
         return march_budget(self.step_count, self.cfg.max_samples, self.cfg.early_max_samples,
-                            self.cfg.grid_warmup_steps)
+                            self.cfg.grid_warmup_steps, self.fog_cleared_step)
 
     def progress(self) -> float:
-        """Fraction of the planned training done (drives the LR schedule)."""
-        parts = []
-        if self.budget_steps:
-            parts.append(self.step_count / self.budget_steps)
-        if self.budget_seconds:
-            parts.append(self.train_seconds / self.budget_seconds)
-        if not parts:
-            parts.append(self.step_count / max(1, self.cfg.horizon_steps))
-        return max(parts)
+        """Fraction of the planned training done (drives the LR schedule: schedule.training_progress)."""
+        return training_progress(self.step_count, self.train_seconds, self.budget_steps, self.budget_seconds,
+                                 self.cfg.horizon_steps, self.cfg.lr_anneal)
 
     def _set_lr(self) -> float:
         f = self.schedule.factor(self.progress())
@@ -436,6 +442,8 @@ class Stage1Trainer:
         stats = out.get("stats") or {}
         if not one_pass and stats.get("density_samples"):
             self.filter_kept = stats["samples"] / stats["density_samples"]
+            if self.fog_cleared_step is None and self.filter_kept < self.cfg.one_pass_kept:
+                self.fog_cleared_step = self.step_count
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
         if self.features is not None:
@@ -467,6 +475,7 @@ class Stage1Trainer:
         synchronize(self.device)
         dt = time.perf_counter() - t0
         self.train_seconds += dt
+        self.ray_seconds = dt / max(1, batch["rgb"].shape[0])
         info.update(step=self.step_count, loss=float(total.detach()), psnr=mse_to_psnr(mse), lr=lr, seconds=dt,
                     skipped=not finite, skipped_steps=self.skipped_steps,
                     spike=self.spikes.update(float(total.detach())), spikes=self.spikes.spikes)
@@ -551,7 +560,7 @@ class Stage1Trainer:
 
     @torch.no_grad()
     def evaluate(self, split: str | None = None, max_views: int | None = None, with_ssim: bool = False,
-                 full: bool = False, deadline: float | None = None) -> dict:
+                 full: bool = False, deadline: float | None = None, seconds: float | None = None) -> dict:
         """Mean PSNR (and SSIM) of renders of a split against its images composited over the eval background.
 
         By default a bounded evaluation, whose cost does not grow with the image size: `EVAL_VIEWS` views
@@ -559,8 +568,12 @@ class Stage1Trainer:
         each (the same scene content at every image size; see eval_pixels), and at most
         `EVAL_SAMPLE_CAP` samples per ray (an untrained, foggy field is never marched to the far bound).
         `full=True` renders every pixel of the first `max_views` views (all by default) without the cap.
-        Views left when `time.perf_counter()` passes `deadline` are skipped (at least one is evaluated)
-        and counted in 'skipped_views'.
+
+        Time limits: `seconds` from the call and/or the clock value `deadline` (time.perf_counter()). A view starts
+        only when the slowest view so far would end within them (at least one is evaluated); the others are
+        counted in 'skipped_views'. The first view's time is estimated from the last training step's seconds per
+        ray; when it would not fit, the bounded evaluation's grid shrinks (to EVAL_GRID_MIN at the least; 'grid'
+        says the side used).
         """
         split = split or self.eval_split()
         data = self.scene.split(split)
@@ -574,17 +587,20 @@ class Stage1Trainer:
         views = list(range(n if max_views is None else min(max_views, n))) if full \
             else spread_views(n, EVAL_VIEWS if max_views is None else max_views)
         t0 = time.perf_counter()
-        ps, ss, pixels, samples, skipped = [], [], 0, 0.0, 0
+        limit = min(math.inf if seconds is None else seconds, math.inf if deadline is None else deadline - t0)
+        side = None if full else eval_grid_side(limit, self.ray_seconds)
+        ps, ss, pixels, samples, skipped, view_s = [], [], 0, 0.0, 0, 0.0
         for i in views:
-            if deadline is not None and ps and time.perf_counter() > deadline:
+            if ps and time.perf_counter() - t0 + view_s > limit:
                 skipped += 1
                 continue
+            tv = time.perf_counter()
             if full:
                 out = render_camera(self.field, self.grid, cams, i, opts)
                 gt = target_image(data.images[i], bg)
                 rgb = out["rgb"]
             else:
-                us, vs = eval_pixels(int(cams.width[i]), int(cams.height[i]), EVAL_GRID)
+                us, vs = eval_pixels(int(cams.width[i]), int(cams.height[i]), side)
                 vv, uu = torch.meshgrid(torch.as_tensor(vs, device=self.device),
                                         torch.as_tensor(us, device=self.device), indexing="ij")
                 o, d, _ = cams.rays(torch.full_like(uu, i).reshape(-1), uu.reshape(-1), vv.reshape(-1))
@@ -596,8 +612,9 @@ class Stage1Trainer:
             ps.append(psnr(rgb.clamp(0, 1), gt))
             if with_ssim:
                 ss.append(ssim(rgb.clamp(0, 1), gt))
+            view_s = max(view_s, time.perf_counter() - tv)
         self.field.train()
-        res = {"split": split, "views": len(ps), "views_total": n, "full": full, "pixels": pixels,
+        res = {"split": split, "views": len(ps), "views_total": n, "full": full, "pixels": pixels, "grid": side,
                "skipped_views": skipped, "samples_per_ray": samples / max(1, pixels),
                "seconds": time.perf_counter() - t0, "psnr": float(np.mean(ps)) if ps else float("nan")}
         if with_ssim:
@@ -620,7 +637,7 @@ class Stage1Trainer:
             grid=GridFacts(self.cfg.grid_resolution, self.cfg.grid_cascades,
                            float(getattr(self.field_cfg, "bound", 1.0)), grid_rest),
             optim=opt_meta, budget_steps=self.budget_steps, budget_seconds=self.budget_seconds,
-            scene=SceneFacts.of(self.scene), history=self.history)
+            scene=SceneFacts.of(self.scene), history=self.history, fog_cleared_step=self.fog_cleared_step)
         return Checkpoint.of(tensors, header)
 
     def load(self, ckpt: Checkpoint) -> None:
@@ -636,6 +653,7 @@ class Stage1Trainer:
         self.step_count, self.train_seconds = h.step, h.train_seconds
         self.budget_steps, self.budget_seconds = h.budget_steps, h.budget_seconds
         self.history = h.history
+        self.fog_cleared_step = h.march_start
 
     def checkpoint_path(self) -> Path:
         if self.workspace is None:
@@ -683,6 +701,15 @@ def eval_pixels(width: int, height: int, side: int) -> tuple[np.ndarray, np.ndar
         k = min(side, n)
         return ((np.arange(k) + 0.5) * n / k).astype(np.int64)
     return axis(width), axis(height)
+
+
+def eval_grid_side(limit_s: float, ray_seconds: float, side: int | None = None) -> int:
+    """The bounded evaluation's grid side for a view estimated at `ray_seconds` per pixel to fit in `limit_s`:
+    `side` (EVAL_GRID) when it fits or nothing is known, else the largest that fits, at least EVAL_GRID_MIN."""
+    side = EVAL_GRID if side is None else side
+    if not math.isfinite(limit_s) or ray_seconds <= 0 or side * side * ray_seconds <= limit_s:
+        return side
+    return int(min(side, max(EVAL_GRID_MIN, math.isqrt(int(max(0.0, limit_s) / ray_seconds)))))
 
 
 def target_image(image: np.ndarray, background: torch.Tensor) -> torch.Tensor:
