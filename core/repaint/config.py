@@ -24,8 +24,10 @@ class RepaintConfig:
     # weight slows the edit). bench edit "drift" (drifting guidance, patch selection, 300 steps), sum at 10 -> 5,
     # two edit seeds: demo 48 px (patch IoU 0.89) masked 21.3 / 22.4 -> 25.3 / 26.3 dB, unmasked drop
     # -0.49 / -0.57 -> -0.06 / +0.12 dB; bread 64 px (IoU 0.93) masked 31.0 -> 31.0 dB, drop -1.5 -> -0.7 dB.
-    # At 3 demo's rest drops 0.77 dB; at 10 demo needs 600 steps for 25.3 dB. The old default, a mean at
-    # 100, dropped the rest 8.4 dB (demo 32 px, 80 steps).
+    # At 3 demo's rest drops 0.77 dB; at 10 demo needs 600 steps for 25.3 dB. Lemon 64 px (IoU 0.79) is
+    # slower: masked 18.5 -> 20.1 dB at 300 steps (drop -0.45 -> +0.40 dB). At 600 steps all three meet the
+    # goal: demo 26.6 dB (drop -0.20), bread 31.8 (-0.90), lemon 25.4 (+0.41).
+    # The old default, a mean at 100, dropped the rest 8.4 dB (demo 32 px, 80 steps).
     lambda_unmask: float = 5.0
     unmask_reduction: str = "sum"
     lambda_clip: float | None = None
