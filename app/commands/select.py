@@ -40,8 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--geometry", choices=GEOMETRY_NAMES, default=DEFAULT_GEOMETRY,
                    help="the field's geometry in the masks: 'basic' = the voxel 3D clean-up; 'full' (default) adds "
                         "depth edges, concave creases (contact lines), growth from the patch carried between views, "
-                        "the views' vote, hole filling and border pixels given to the surface whose depth they share, for objects resting on or touching look-alikes, where the "
-                        "field's depth is smooth enough to tell a step (else the clean-up only; see masks/index.json)")
+                        "the views' vote, hole filling and border pixels given to the surface whose depth they "
+                        "share, for objects resting on or touching look-alikes, where the field's depth is smooth "
+                        "enough to tell a step (else the clean-up only; see masks/index.json)")
     p.add_argument("--out", required=True, help="folder for the mask PNGs (mask_0000.png ... and index.json)")
     p.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: $REPAINT_NERF_DEVICE, else CUDA if present)")
 

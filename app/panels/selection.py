@@ -39,9 +39,9 @@ def draw(app) -> None:
     remember_item(app, "use_geometry")
     if imgui.is_item_hovered():
         imgui.set_tooltip("shape the masks with the field's geometry: stop at depth edges and at the crease where "
-                          "an object rests on its support, let the views outvote each other's leaks and give the border "
-                          "pixels to the surface whose depth they share (off: only "
-                          "drop what is not connected to the patch in 3D)")
+                          "an object rests on its support, let the views outvote each other's leaks and give the "
+                          "border pixels to the surface whose depth they share (off: only drop what is not "
+                          "connected to the patch in 3D)")
     if imgui.button("Clear selection"):
         app.clear_selection()
     imgui.same_line()

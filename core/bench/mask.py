@@ -5,8 +5,9 @@ workspace, a patch placed automatically inside the object in one training view (
 ground-truth mask, a small square), then mask IoU over all test views: at the automatic threshold
 (core.select.autothreshold; this is `final.iou`), at the fixed 0.5, at the best threshold of a sweep,
 with and without each geometry part (core.select.geometry: depth edges, seeded growth, holes, the voxel
-3D clean-up, creases, the views' vote, border attachment), against training steps, with and without depth supervision (sparse/triangulated priors,
-never the ground-truth depth); patch-to-mask time on a 256x256 feature map and MB of cached features.
+3D clean-up, creases, the views' vote, border attachment), against training steps, with and without depth
+supervision (sparse/triangulated priors, never the ground-truth depth); patch-to-mask time on a 256x256
+feature map and MB of cached features.
 Returns dicts and picture arrays; the CLI driver is app/bench/mask.py.
 """
 from __future__ import annotations
@@ -158,7 +159,6 @@ class Evaluator:
         seeds = [(n, patch_pixels(tuple(pm.depth.shape), local))]
         out = {t: shaped_masks(all_sims, maps, cams, seeds, t, parts)[:n] for t in thresholds}
         return out, sims
-
 
     def editor_masks(self, view: int, rect, parts_list: list) -> tuple[list[list[np.ndarray]], float]:
         """The editor's way, in test views only: a patch `rect` (a Patch) drawn in test view `view` as in a free
@@ -358,8 +358,7 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
     similarity, automatic threshold, threshold, the patch's surface points): {"total", "auto" (the automatic
     threshold's share)}."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
-    from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
-    from repaint_nerf.core.select.geometry import patch_anchors
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold
     from repaint_nerf.core.select.query import Patch
     from repaint_nerf.core.select.selection import Selection
 
@@ -375,15 +374,13 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
         t0 = time.perf_counter()
         sel = Selection()
         sel.add_patch(feat, big)
-        sim = sel.similarity(feat)
-        t1 = time.perf_counter()
-        t = patch_auto_threshold(sim, big, depth, opacity)
-        t2 = time.perf_counter()
-        m = sim > t
-        _ = bool(m[0, 0])  # the result is on the host
-        sel.add_anchors(patch_anchors(patch_pixels(tuple(sim.shape), big), sim.numpy(), depth, opacity, cam, t))
+        sim = sel.similarity(feat).float().cpu().numpy()  # on the host, as Engine.select has it
+        t = sel.anchor_patch(sim, big, depth, opacity, cam)  # what Engine.select runs
+        _ = sim > t  # the mask on screen
         total.append(time.perf_counter() - t0)
-        auto.append(t2 - t1)
+        t1 = time.perf_counter()  # the automatic threshold's share, timed on its own
+        patch_auto_threshold(sim, big, depth, opacity)
+        auto.append(time.perf_counter() - t1)
     return {"total": 1000.0 * float(np.median(total)), "auto": 1000.0 * float(np.median(auto))}
 
 

@@ -178,9 +178,10 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     from repaint_nerf.core.select.geometry import attach, geometric_masks
 
     cams = cameras.to("cpu")
+    np_sims = [s.float().cpu().numpy() for s in sims]
     if parts.edges or parts.grow or parts.holes:
         masks = [torch.from_numpy(m) for m in geometric_masks(
-            [s.float().cpu().numpy() for s in sims], [m.depth.numpy() for m in maps],
+            np_sims, [m.depth.numpy() for m in maps],
             [m.opacity.numpy() for m in maps], cams, seeds, threshold, parts)]
     else:
         masks = [s.cpu() > threshold for s in sims]
@@ -188,8 +189,7 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
         masks = cleanup_masks(masks, [m.depth for m in maps], [m.opacity for m in maps], cams, seeds)
     out = [m.cpu().numpy().astype(bool) for m in masks]
     if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
-        out = [attach(m, s.float().cpu().numpy() > threshold, v.depth.numpy(), v.opacity.numpy())
-               for m, s, v in zip(out, sims, maps)]
+        out = [attach(m, s > threshold, v.depth.numpy(), v.opacity.numpy()) for m, s, v in zip(out, np_sims, maps)]
     return out
 
 
