@@ -276,11 +276,12 @@ def fit_parts(parts: GeometryParts, depths: list[np.ndarray], opacities: list[np
     for it: its median noise (`depth_noise`) reaches `DEPTH_EDGE`, so no depth step can be told from the
     roughness (a 32-px trained field: ~3%, where depth edges cut its objects into specks; 128-px fields ~0.7%).
     The voxel clean-up, which needs only surface points, stays."""
-    if not (parts.edges or parts.grow or parts.holes or parts.creases or parts.vote or parts.attach):
+    clean_up_only = replace(GeometryParts.none(), cleanup3d=parts.cleanup3d)
+    if parts == clean_up_only:  # no 2D part asked for
         return parts
     noise = [depth_noise(w, surface) for w, surface in map(inverse_depth, depths, opacities) if surface.sum() >= 16]
     if noise and float(np.median(noise)) >= DEPTH_EDGE:
-        return replace(GeometryParts.none(), cleanup3d=parts.cleanup3d)
+        return clean_up_only
     return parts
 
 
