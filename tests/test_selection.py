@@ -328,6 +328,38 @@ def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     assert _iou(seeded, gts) > 0.85
 
 
+def test_views_outside_the_training_set_take_a_training_patch_only_through_its_surface_points(tmp_path):
+    """A patch's `view` indexes the training views: masks of other cameras (test views) must not read it as their
+    own view's pixels, which here lie on the look-alike ball; the patch's surface points seed them instead."""
+    from repaint_nerf.core.render.renderer import RenderOptions
+    from repaint_nerf.core.select.autothreshold import patch_pixels
+    from repaint_nerf.core.select.geometry import patch_anchors
+    from repaint_nerf.core.select.masks import render_view_maps
+
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cams = _ring_cameras()
+    others = cams[[2, 3, 0, 1]]  # the same ring in another order: view 1 there is training view 3
+    opts = RenderOptions(max_samples=96)
+    m = render_view_maps(field, None, cams, 1, opts)
+    ys, xs = np.nonzero(_ball_gt(cams, 1, centers[0], 0.22).numpy())
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    patch = Patch(1, cx - 2, cy - 2, cx + 3, cy + 3)
+    sel = Selection(threshold=0.5)
+    sel.add_patch(m.feature, patch)
+    cache = ViewCache(field, None, others, render_opts=opts)
+    gts = [_ball_gt(others, i, centers[0], 0.22).numpy() for i in range(len(others))]
+    misread = masks_for_views(field, None, others, sel, cleanup=True, cache=cache)  # as if they were training views
+    unseeded = masks_for_views(field, None, others, sel, cleanup=True, cache=cache, training_views=False)
+    sim = sel.similarity(m.feature).numpy()
+    sel.add_anchors(patch_anchors(patch_pixels(sim.shape, patch), sim, m.depth.numpy(), m.opacity.numpy(),
+                                  cams[1:2], 0.5))
+    seeded = masks_for_views(field, None, others, sel, cleanup=True, cache=cache, training_views=False)
+    assert _iou(misread, gts) < 0.1  # the patch's pixels in the other set's view 1 grew the look-alike
+    assert 0.3 < _iou(unseeded, gts) < 0.75  # no seed: both look-alikes
+    assert _iou(seeded, gts) > 0.9
+
+
 def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_path):
     """Engine.select in a free camera keeps the patch's surface points, and the masks it then applies to the
     training views (what the repaint reads) leave out the look-alike ball."""

@@ -84,9 +84,12 @@ def read_images(folder: Path, names: list[str]) -> list[np.ndarray]:
 
 
 def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
-    """The selection `bench mask` makes (a patch inside the object, from the gt mask): masks of the training
-    views, of the test views, and {'patch', 'train_iou'}."""
+    """The selection `select` makes from a patch inside the object (placed from the gt mask), at the patch's
+    automatic threshold: masks of the training views, of the test views (seeded by the patch's surface
+    points, which is all a view outside the training set knows of it), and {'patch', 'train_iou', 'threshold'}."""
     from repaint_nerf.core.bench.teacher import place_patch
+    from repaint_nerf.core.select.autothreshold import patch_pixels, selection_auto_threshold
+    from repaint_nerf.core.select.geometry import patch_anchors
     from repaint_nerf.core.select.masks import masks_for_views, render_view_maps
     from repaint_nerf.core.select.query import Patch
     from repaint_nerf.core.select.selection import Selection
@@ -94,13 +97,20 @@ def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
     view, (y0, y1, x0, x1) = place_patch(gt_train)
     patch = Patch(view, x0, y0, x1, y1)
     cams = scene.field_cameras("train").to(trainer.device)
+    maps = render_view_maps(trainer.field, trainer.grid, cams, view)
     sel = Selection()
-    sel.add_patch(render_view_maps(trainer.field, trainer.grid, cams, view).feature, patch)
+    sel.add_patch(maps.feature, patch)
+    sel.threshold = sel.auto_threshold = selection_auto_threshold(sel, maps)
     masks = masks_for_views(trainer.field, trainer.grid, cams, sel)
-    test_masks = masks_for_views(trainer.field, trainer.grid, scene.field_cameras(test_split).to(trainer.device), sel)
+    sel.add_anchors(patch_anchors(patch_pixels(tuple(maps.depth.shape), patch), sel.similarity(maps.feature).float()
+                                  .cpu().numpy(), maps.depth.numpy(), maps.opacity.numpy(),
+                                  cams.to("cpu")[view:view + 1], sel.threshold))
+    test_masks = masks_for_views(trainer.field, trainer.grid, scene.field_cameras(test_split).to(trainer.device), sel,
+                                 training_views=False)
     inter = sum(int(np.count_nonzero(m & g)) for m, g in zip(masks, gt_train))
     union = sum(int(np.count_nonzero(m | g)) for m, g in zip(masks, gt_train))
-    return masks, test_masks, {"patch": patch.to_dict(), "train_iou": inter / max(1, union)}
+    return masks, test_masks, {"patch": patch.to_dict(), "train_iou": inter / max(1, union),
+                               "threshold": sel.threshold}
 
 
 def edit_config(opts: EditBenchOptions, steps: int, max_samples: int, **changes):
@@ -207,7 +217,8 @@ def measure(opts: EditBenchOptions, workdir: Path) -> dict:
               "psnr": s1.evaluate()["psnr"]}
     log(f"stage 1: test PSNR {stage1['psnr']:.2f} dB in {stage1['seconds']:.0f} s")
     masks, sel_test, sel_info = select_object(s1, scene, gt_train, test_split)
-    log(f"selection: train IoU {sel_info['train_iou']:.3f} vs the ground-truth object")
+    log(f"selection: train IoU {sel_info['train_iou']:.3f} vs the ground-truth object, automatic threshold "
+        f"{sel_info['threshold']:.2f}")
     field_state = {k: v.detach().clone() for k, v in s1.field.state_dict().items()}
     grid_state = s1.grid.state_dict()
 

@@ -123,9 +123,11 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
 def masks_for_views(field, grid, cameras, selection, threshold: float | None = None, workspace=None,
                     cleanup: bool | None = None, cache: ViewCache | None = None, names: list[str] | None = None,
                     progress: Callable[[int, int], None] | None = None, parts=None,
-                    refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None) -> list[np.ndarray]:
+                    refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None,
+                    training_views: bool = True) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
-    (WS/masks) when given. `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
+    (WS/masks) when given. `cameras` are the training views its patches index unless `training_views` is
+    False (test views: only the selection's anchors seed them). `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
     geometry.GeometryParts, default: the parts the selection's `geometry` names) seeded by the selection's positive patches in
     training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
     the final masks."""
@@ -142,7 +144,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
         if progress:
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
-    seeds = selection_seeds(selection, maps, cameras) if do_cleanup else []
+    seeds = selection_seeds(selection, maps, cameras, training_views) if do_cleanup else []
     asked = (parts or parts_named(selection.geometry)) if seeds else GeometryParts.none()
     parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
     out = shaped_masks(sims, maps, cameras, seeds, t, parts)
@@ -154,16 +156,17 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     return out
 
 
-def selection_seeds(selection, maps: list[ViewMaps], cameras) -> list[tuple[int, np.ndarray]]:
+def selection_seeds(selection, maps: list[ViewMaps], cameras,
+                    training_views: bool = True) -> list[tuple[int, np.ndarray]]:
     """(view, bool (H, W)) seed pixels of a selection in the views of `cameras`: its positive patches drawn in
-    those views, and the surface points of patches drawn elsewhere (the editor's free camera) where a view
-    sees them (core.select.geometry.anchor_seeds)."""
+    those views (when they are the training views: a patch's `view` indexes those), and the surface points of
+    patches drawn elsewhere (the editor's free camera) where a view sees them (core.select.geometry.anchor_seeds)."""
     from repaint_nerf.core.select.autothreshold import patch_pixels
     from repaint_nerf.core.select.geometry import anchor_seeds
 
     n = len(maps)
     seeds = [(p.view, patch_pixels(tuple(maps[p.view].depth.shape), p)) for p in selection.patches
-             if p.positive and 0 <= p.view < n]
+             if training_views and p.positive and 0 <= p.view < n]
     anchors = selection.anchor_points()
     if len(anchors):
         seeds += anchor_seeds(anchors, [m.depth.numpy() for m in maps], cameras.to("cpu"))
