@@ -254,6 +254,30 @@ def test_views_outvote_a_leak_seen_by_one_view():
     assert (alone[0] == (box[0] | leak)).all()
 
 
+def test_one_view_that_has_not_grown_a_part_does_not_outvote_a_view_that_has():
+    """The box's lower half is in views 0 and 1's masks but not yet in view 2's (its growth stopped at a groove):
+    one view against one for keeps it in view 0 (a tie used to drop it); two views against none drop it."""
+    from repaint_nerf.core.select.geometry import vote
+
+    cams, depths, ids = _two_view_scene(eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6)))
+    box = [i == 2 for i in ids]
+    surface = [np.ones(d.shape, bool) for d in depths]
+    ys, _ = np.nonzero(box[2])
+    upper2 = box[2].copy()
+    upper2[(ys.min() + ys.max()) // 2:] = False
+    lower0 = box[0].copy()
+    ys0, _ = np.nonzero(box[0])
+    lower0[:(ys0.min() + ys0.max()) // 2 + 2] = False  # the lower half in view 0, clear of its middle row
+    assert lower0.sum() > 20
+    kept = vote([box[0], box[1], upper2], depths, surface, cams)
+    assert (kept[0] & lower0).sum() > 0.9 * lower0.sum()
+    upper1 = box[1].copy()
+    ys1, _ = np.nonzero(box[1])
+    upper1[(ys1.min() + ys1.max()) // 2:] = False
+    dropped = vote([box[0], upper1, upper2], depths, surface, cams)
+    assert (dropped[0] & lower0).sum() < 0.2 * lower0.sum()
+
+
 @pytest.fixture(scope="module")
 def teacher_views(tmp_path_factory):
     """Per preset: default-teacher similarity to the auto patch, ground-truth depth and object mask in the
