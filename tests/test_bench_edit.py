@@ -35,6 +35,7 @@ def test_bench_edit_drift_reports_its_curve_and_border_split(scene_factory, tmp_
     d = res["drift"]
     cfg = RepaintConfig()
     assert (d["lambda_unmask"], d["unmask_reduction"]) == (cfg.lambda_unmask, cfg.unmask_reduction)
+    assert (d["unmask_ramp"], d["unmask_ramp_start"]) == (cfg.unmask_ramp, cfg.unmask_ramp_start)
     assert [r["step"] for r in d["curve"]] == [0, 2, 4]
     assert d["psnr_masked"] == d["curve"][-1]["psnr_masked"]
     assert d["unmasked_drop_db"] == d["psnr_unmasked_before"] - d["psnr_unmasked"]

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from repaint_nerf.core.errors import UserError
-from repaint_nerf.core.repaint.objective import stage2_loss, unmask_loss
+from repaint_nerf.core.repaint.objective import stage2_loss, unmask_loss, unmask_weight
 from repaint_nerf.core.repaint.trainer import RepaintTrainer
 from repaint_scene import make_field, make_grid, make_scene
 
@@ -55,6 +55,29 @@ def test_stage2_loss_is_the_weighted_sum():
     assert float(stage2_loss(g, u, 10.0, c, 0.01)) == pytest.approx(0.7 + 10.0 * 0.2 + 0.01 * -0.9)
 
 
+def test_unmask_weight_ramps_linearly_then_holds():
+    """lambda(p) = lambda * (start + (1 - start) * min(1, p / ramp)), written as the two straight pieces."""
+    lam, ramp, start = 5.0, 0.5, 0.2
+    for p in np.linspace(0.0, 1.0, 11):
+        want = lam * start + (lam - lam * start) * (p / ramp) if p < ramp else lam
+        assert unmask_weight(lam, float(p), ramp, start) == pytest.approx(want, rel=1e-12)
+    assert unmask_weight(lam, 0.0, 0.0, start) == lam  # ramp 0: the paper's constant weight
+    assert unmask_weight(0.0, 0.1, ramp, start) == 0.0  # no weight stays no weight
+
+
+def test_trainer_ramps_the_unmask_weight_over_the_steps(scene):
+    steps = 4
+    tr = _trainer(scene, ConstantGuidance(), steps=steps, lambda_unmask=8.0, unmask_ramp=0.5, unmask_ramp_start=0.25)
+    infos = [tr.step() for _ in range(steps)]
+    # steps 0..3 of 4 at progress 0, 1/4, 1/2, 3/4: 8 x 0.25, halfway up, then the full weight
+    want = [2.0, 5.0, 8.0, 8.0]
+    assert [i["lambda_unmask"] for i in infos] == pytest.approx(want)
+    for i, lam in zip(infos, want):  # and that weight is the one in Eq. s2's loss
+        assert i["loss"] == pytest.approx(i["guidance"] + lam * i["unmask"], rel=1e-5)
+    with pytest.raises(UserError, match="unmask_ramp"):
+        _trainer(scene, steps=1, unmask_ramp=1.5)
+
+
 class ConstantGuidance:
     """A guidance whose loss is a known function of the render: 0.5 * sum(rgb)."""
 
@@ -65,7 +88,7 @@ class ConstantGuidance:
 @pytest.mark.parametrize("reduction", ["sum", "mean"])
 def test_trainer_step_is_eq_s2_on_the_view_it_rendered(scene, reduction, monkeypatch):
     tr = _trainer(scene, ConstantGuidance(), steps=3, lambda_unmask=7.0, unmask_reduction=reduction,
-                  unmask_margin=0, perturb=False)
+                  unmask_margin=0, perturb=False, unmask_ramp=0.0)
     seen = {}
     real = tr.render_view
     monkeypatch.setattr(tr, "render_view", lambda v, grad=True: seen.setdefault("rgb", real(v, grad)))

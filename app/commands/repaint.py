@@ -17,9 +17,10 @@ HELP = "repaint the selected region (stage 2) under a guidance and save it as a 
 
 # RepaintConfig fields the command sets from its flags (--lambda-unmask -> lambda_unmask); each flag defaults to
 # the field's default, so the CLI, the editor and the benchmarks share one set of defaults.
-CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_reduction", "lambda_clip", "resolution", "optimizer", "lr",
-                "mask_dilation", "seed", "sd_unet_precision", "sd_tiny_autoencoder", "sd_channels_last",
-                "sd_token_merging", "sds_resolution", "t_schedule", "sd_config", "sd_family", "sd_prediction_type")
+CONFIG_FLAGS = ("steps", "lambda_unmask", "unmask_ramp", "unmask_ramp_start", "unmask_reduction", "lambda_clip",
+                "resolution", "optimizer", "lr", "mask_dilation", "seed", "sd_unet_precision", "sd_tiny_autoencoder",
+                "sd_channels_last", "sd_token_merging", "sds_resolution", "t_schedule", "sd_config", "sd_family",
+                "sd_prediction_type")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,6 +46,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"edit steps (default {d.steps}, what a CPU finishes in minutes; the paper runs 10000)")
     p.add_argument("--lambda-unmask", type=float, default=d.lambda_unmask,
                    help=f"weight of the unmask loss, paper Eq. s2 (default {d.lambda_unmask:g})")
+    p.add_argument("--unmask-ramp", type=float, default=d.unmask_ramp, metavar="FRACTION",
+                   help="the unmask weight rises linearly to --lambda-unmask over this fraction of the steps, from "
+                        f"--unmask-ramp-start x it, so the edit moves first and the rest is held after (default "
+                        f"{d.unmask_ramp:g}; 0 = constant, as the paper)")
+    p.add_argument("--unmask-ramp-start", type=float, default=d.unmask_ramp_start, metavar="FRACTION",
+                   help="the unmask weight's share of --lambda-unmask at the first step "
+                        f"(default {d.unmask_ramp_start:g})")
     p.add_argument("--unmask-reduction", choices=UNMASK_REDUCTIONS, default=d.unmask_reduction,
                    help="Eq. unmask summed over rays as the paper writes it (sum), or averaged over the whole image "
                         "with the masked pixels zeroed as the official code does (mean: the sum / 3HW, so far weaker "
@@ -101,6 +109,9 @@ def check_args(args: argparse.Namespace) -> None:
         raise UserError(f"--steps must be at least 1, got {args.steps}")
     if args.lambda_unmask is not None and args.lambda_unmask < 0:
         raise UserError(f"--lambda-unmask must not be negative, got {args.lambda_unmask}")
+    for flag, value in (("--unmask-ramp", args.unmask_ramp), ("--unmask-ramp-start", args.unmask_ramp_start)):
+        if not 0.0 <= value <= 1.0:
+            raise UserError(f"{flag} must lie between 0 and 1, got {value}")
     if args.lambda_clip is not None and args.lambda_clip < 0:
         raise UserError(f"--lambda-clip must not be negative, got {args.lambda_clip}")
     if args.resolution is not None and args.resolution < 8:

@@ -167,7 +167,8 @@ def run_edit(scene, state, masks, guidance: str, cfg, test, evals=(), prompt: st
 
 def _row(cfg, r: dict, before: dict) -> dict:
     last = r["curve"][-1]
-    return {"lambda_unmask": cfg.lambda_unmask, "unmask_reduction": cfg.unmask_reduction,
+    return {"lambda_unmask": cfg.lambda_unmask, "unmask_ramp": cfg.unmask_ramp,
+            "unmask_ramp_start": cfg.unmask_ramp_start, "unmask_reduction": cfg.unmask_reduction,
             "optimizer": cfg.optimizer, "steps": r["steps"], "seconds": r["seconds"],
             "psnr_masked": last["psnr_masked"], "psnr_unmasked": last["psnr_unmasked"],
             "unmasked_drop_db": before["psnr_unmasked"] - last["psnr_unmasked"]}

@@ -26,6 +26,17 @@ def unmask_loss(rgb: Tensor, target: Tensor, keep: Tensor, reduction: str = "sum
     raise ValueError(f"unknown unmask reduction {reduction!r}; use one of {', '.join(UNMASK_REDUCTIONS)}")
 
 
+def unmask_weight(lambda_unmask: float, progress: float, ramp: float = 0.0, start: float = 1.0) -> float:
+    """Eq. s2's lambda_unmask at `progress` (step / steps, 0..1) of the edit: it rises linearly from
+    start x lambda_unmask to lambda_unmask over the first `ramp` of the steps, then stays there (ramp 0: constant).
+
+    lambda(p) = lambda_unmask * (start + (1 - start) * min(1, p / ramp)).
+    """
+    if ramp <= 0:
+        return float(lambda_unmask)
+    return float(lambda_unmask) * (start + (1.0 - start) * min(1.0, max(0.0, progress) / ramp))
+
+
 def stage2_loss(guidance: Tensor, unmask: Tensor, lambda_unmask: float, clip: Tensor | None = None,
                 lambda_clip: float = 0.0) -> Tensor:
     """Paper Eq. s2 added to the guidance: L = L_SDS + lambda_unmask * L_unmask + lambda_clip * L_clip.

@@ -34,7 +34,7 @@ from repaint_nerf.core.repaint.dilate import dilate
 from repaint_nerf.core.repaint.guidance import as_guidance
 from repaint_nerf.core.repaint.estimate import Estimate, Progress, estimate_repaint
 from repaint_nerf.core.repaint.region import mark_region_occupied, selection_region
-from repaint_nerf.core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss
+from repaint_nerf.core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss, unmask_weight
 from repaint_nerf.core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from repaint_nerf.core.train.checkpoint import Checkpoint, split_state
 from repaint_nerf.core.train.health import SpikeDetector
@@ -115,6 +115,9 @@ class RepaintTrainer:
         if self.cfg.unmask_reduction not in UNMASK_REDUCTIONS:
             raise UserError(f"unknown unmask reduction {self.cfg.unmask_reduction!r}",
                             hint=f"use one of: {', '.join(UNMASK_REDUCTIONS)}")
+        if not (0.0 <= self.cfg.unmask_ramp <= 1.0 and 0.0 <= self.cfg.unmask_ramp_start <= 1.0):
+            raise UserError(f"unmask_ramp and unmask_ramp_start must lie in [0, 1], got {self.cfg.unmask_ramp} "
+                            f"and {self.cfg.unmask_ramp_start}", hint="unmask_ramp 0 keeps lambda_unmask constant")
         if self.cfg.unmask_margin < 0:
             raise UserError(f"unmask_margin must not be negative, got {self.cfg.unmask_margin}")
         self.device = device if isinstance(device, torch.device) else (
@@ -282,7 +285,9 @@ class RepaintTrainer:
                 c = self.clip.loss(rgb, mask) if self.clip is not None else None
                 if c is not None:
                     info["clip"] = float(c.detach())
-                total = stage2_loss(g["loss"], unmask, self.cfg.lambda_unmask, c, self.cfg.lambda_clip)
+                lam = unmask_weight(self.cfg.lambda_unmask, progress, self.cfg.unmask_ramp, self.cfg.unmask_ramp_start)
+                info["lambda_unmask"] = lam
+                total = stage2_loss(g["loss"], unmask, lam, c, self.cfg.lambda_clip)
                 fl = self.guidance.field_loss(self.field, self.step_count)
                 if fl is not None:
                     total = total + fl
