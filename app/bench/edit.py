@@ -25,7 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=8)
     p.add_argument("--stage1-steps", type=int, default=1500)
     p.add_argument("--rays", type=int, default=None, help="stage-1 rays per batch (default: the trainer's)")
-    p.add_argument("--steps", type=int, default=300, help="edit steps of the main run")
+    p.add_argument("--steps", type=int, default=None,
+                   help="edit steps of the main run (default: the repaint default, what a user's edit runs)")
     p.add_argument("--ablation-steps", type=int, default=None,
                    help="edit steps of the drift run and each ablation run (default --steps)")
     p.add_argument("--evals", type=int, default=6, help="evaluations along the drift run and the main run")

@@ -43,7 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(SD 2.x 768 models: v_prediction)")
     p.add_argument("--clip-path", default=None, help="local CLIP folder (else $REPAINT_NERF_CLIP_PATH)")
     p.add_argument("--steps", type=int, default=d.steps,
-                   help=f"edit steps (default {d.steps}, what a CPU finishes in minutes; the paper runs 10000)")
+                   help=f"edit steps (default {d.steps}; the paper runs 10000; the estimated time is printed first)")
     p.add_argument("--lambda-unmask", type=float, default=d.lambda_unmask,
                    help=f"weight of the unmask loss, paper Eq. s2 (default {d.lambda_unmask:g})")
     p.add_argument("--unmask-ramp", type=float, default=d.unmask_ramp, metavar="FRACTION",

@@ -46,7 +46,7 @@ class EditBenchOptions:
     test_views: int = 8
     stage1_steps: int = 1500
     rays: int | None = None
-    steps: int = 300
+    steps: int | None = None  # edit steps of the main run (None: RepaintConfig's, the steps a user gets)
     ablation_steps: int | None = None
     evals: int = 6
     optimizer: str | None = None
@@ -58,6 +58,12 @@ class EditBenchOptions:
     seed: int = 0
     device: str | None = None
     log: Callable[[str], None] = field(default=lambda s: None, repr=False)
+
+    def __post_init__(self):
+        if self.steps is None:
+            from repaint_nerf.core.repaint.config import RepaintConfig
+
+            self.steps = RepaintConfig().steps
 
 
 def read_gt_masks(root: Path, split: str, names: list[str], object_id: int) -> list[np.ndarray]:

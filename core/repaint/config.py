@@ -12,10 +12,11 @@ OPTIMIZERS = ("paper", "official")
 
 @dataclass
 class RepaintConfig:
-    """Stage-2 settings. The paper runs 10000 steps at 400x400 on a GPU; our default of 300 steps at
-    <= 128 px is what a CPU finishes in minutes (offline and analytic edits converge in that)."""
+    """Stage-2 settings. The paper runs 10000 steps at 400x400 on a GPU; our default of 600 steps at
+    <= 128 px is what a small object's edit needs under the unmask weight (below); offline and analytic edits
+    take minutes on a CPU, and the editor and `repaint` show the estimated time before they start."""
 
-    steps: int = 300
+    steps: int = 600
     resolution: int | None = None  # render long side; None = training size capped at 128 (CPU) / 400 (CUDA)
     # Paper Eq. s2's weight on Eq. unmask, reduced as the paper writes it ("sum" over rays and channels) or as
     # the official code does ("mean" over every value of the image, masked pixels zeroed: the sum / 3HW, so
@@ -42,8 +43,9 @@ class RepaintConfig:
     # lemon: lr x2 / x4 (20.6 dB, drop 0.52 / 22.3, 1.16), colour head lr x5 / x10 (23.5, 0.57 / 19.3, 0.69),
     # grid x4 (19.4, 1.35), a ramp over 0.3 of the steps (23.4, 0.33), to a weight of 10 (21.7, -0.36).
     # With this ramp at 600 steps all three meet the goal: lemon 27.09 dB, drop 0.47; bread 32.33, -0.81; demo
-    # 27.35, -0.14. The steps stay 300: an SD step costs 5-20 s on this CPU (core.repaint.estimate), so 600 steps
-    # is 50 min with the tiny autoencoder, 3.4 h without.
+    # 27.35, -0.14. So the default steps are 600 (300 before): an SD step costs 5-20 s on this CPU
+    # (core.repaint.estimate), 50 min an edit with the tiny autoencoder at 512 px, 15 min at 256 px, 3.4 h with
+    # the VAE; on a GPU, minutes.
     unmask_ramp: float = 0.5
     unmask_ramp_start: float = 0.2
     unmask_reduction: str = "sum"
