@@ -108,8 +108,8 @@ def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
     sel.add_patch(maps.feature, patch)
     sel.threshold = sel.auto_threshold = selection_auto_threshold(sel, maps)
     masks = masks_for_views(trainer.field, trainer.grid, cams, sel)
-    sel.add_anchors(patch_anchors(patch_pixels(tuple(maps.depth.shape), patch), sel.similarity(maps.feature).float()
-                                  .cpu().numpy(), maps.depth.numpy(), maps.opacity.numpy(),
+    sim = sel.similarity(maps.feature).float().cpu().numpy()
+    sel.add_anchors(patch_anchors(patch_pixels(sim.shape, patch), sim, maps.depth.numpy(), maps.opacity.numpy(),
                                   cams.to("cpu")[view:view + 1], sel.threshold))
     test_masks = masks_for_views(trainer.field, trainer.grid, scene.field_cameras(test_split).to(trainer.device), sel,
                                  training_views=False)

@@ -127,10 +127,10 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
                     training_views: bool = True) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
     (WS/masks) when given. `cameras` are the training views its patches index unless `training_views` is
-    False (test views: only the selection's anchors seed them). `cleanup` (default: the selection's) applies the field's geometry (`parts`, a
-    geometry.GeometryParts, default: the parts the selection's `geometry` names) seeded by the selection's positive patches in
-    training views; `refine` (e.g. core.teachers.sam_refine.refine_masks bound to the views' images) maps
-    the final masks."""
+    False (test views: only the selection's anchors seed them). `cleanup` (default: the selection's) applies
+    the field's geometry (`parts`, a geometry.GeometryParts, default: the parts the selection's `geometry`
+    names) seeded by the selection's positive patches in training views; `refine` (e.g.
+    core.teachers.sam_refine.refine_masks bound to the views' images) maps the final masks."""
     from repaint_nerf.core.select.geometry import GeometryParts, fit_parts, parts_named
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
