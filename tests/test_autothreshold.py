@@ -59,6 +59,45 @@ def test_choose_threshold_ignores_the_fall_to_the_patch_alone():
     assert jump is None and 0.3 < value < 0.6
 
 
+def test_the_object_is_the_longest_plateau_above_a_leak_not_a_slow_shrink_right_above_it():
+    """A trained room360 field's curve without depth edges, in shape: a leak at 0.1, then a shadow whose
+    similarity fades (the area shrinks ~2% per 0.01 from 0.15 to 0.40), a step, and the object's own long
+    plateau 0.44-0.82. The object is the plateau (the old rule took the shadow stretch's middle, ~0.28)."""
+    ts = np.round(np.arange(0.02, 0.985, 0.01), 2)
+    areas = np.select([ts < 0.10, ts < 0.15, ts < 0.40, ts < 0.44, ts <= 0.82],
+                      [16000.0, 4000.0, 3600.0 - 2400.0 * (ts - 0.15), 3000.0 - 7500.0 * (ts - 0.40),
+                       2700.0 - 180.0 * (ts - 0.44)], 100.0)
+    value, jump = choose_threshold(ts, np.round(areas), seed_area=100)
+    assert jump is not None and jump < 0.15
+    assert 0.55 <= value <= 0.72, value
+
+
+def test_the_patch_view_uses_depth_edges_only_where_the_masks_can():
+    """A disc (0.8) in front of a touching slab of a similar colour (0.6): smooth depth closes the disc with
+    an edge, so its plateau runs to the bottom of the grid; on depth rougher than `DEPTH_EDGE` (where the
+    masks keep only the 3D clean-up, `fit_parts`) and with the 'basic' geometry, the threshold comes from
+    the similarity alone and stays above the slab."""
+    from repaint_nerf.core.select.geometry import DEPTH_EDGE
+
+    rng = np.random.default_rng(3)
+    h = w = 64
+    disc = _disc(h, w, 32, 32, 12)
+    slab = np.zeros((h, w), bool)
+    slab[20:60, 8:56] = True
+    slab &= ~disc
+    sim = np.where(disc, 0.8, np.where(slab, 0.6, 0.1)) + rng.normal(0.0, 0.01, (h, w))
+    depth = np.where(disc, 3.0, 4.0).astype(np.float32)
+    opacity = np.ones((h, w), np.float32)
+    patch = (0.45, 0.45, 0.55, 0.55)
+    smooth = patch_auto_threshold(sim, patch, depth, opacity)
+    assert smooth < 0.55, smooth  # the edge holds the region: anything below the disc is safe here
+    alone = patch_auto_threshold(sim, patch, None, opacity)
+    assert 0.62 < alone < 0.78, alone
+    rough = (depth * np.exp(rng.normal(0.0, 2.0 * DEPTH_EDGE / np.sqrt(6), depth.shape))).astype(np.float32)
+    assert patch_auto_threshold(sim, patch, rough, opacity) == alone
+    assert patch_auto_threshold(sim, patch, depth, opacity, edges=False) == alone
+
+
 def test_patch_auto_threshold_accepts_a_fraction_rect_and_big_maps():
     sim = np.full((300, 200), 0.1, np.float32)
     sim[100:200, 50:150] = 0.9

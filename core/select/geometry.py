@@ -279,10 +279,14 @@ def fit_parts(parts: GeometryParts, depths: list[np.ndarray], opacities: list[np
     clean_up_only = replace(GeometryParts.none(), cleanup3d=parts.cleanup3d)
     if parts == clean_up_only:  # no 2D part asked for
         return parts
+    return clean_up_only if rough_depth(depths, opacities) else parts
+
+
+def rough_depth(depths: list[np.ndarray], opacities: list[np.ndarray | None]) -> bool:
+    """Whether the views' rendered depth is too rough for depth edges: its median noise (`depth_noise`) reaches
+    `DEPTH_EDGE` (views with under 16 surface pixels do not count)."""
     noise = [depth_noise(w, surface) for w, surface in map(inverse_depth, depths, opacities) if surface.sum() >= 16]
-    if noise and float(np.median(noise)) >= DEPTH_EDGE:
-        return clean_up_only
-    return parts
+    return bool(noise) and float(np.median(noise)) >= DEPTH_EDGE
 
 
 def parts_named(name: str) -> GeometryParts:

@@ -64,10 +64,10 @@ class Selection:
         """For a positive patch drawn in a view that is not a training view (the editor's free camera, `camera` at
         the maps' size): its automatic threshold in that view (kept as `auto_threshold`) and its surface points at
         that threshold (kept as anchors). Returns the threshold."""
-        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels
+        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels, uses_edges
         from repaint_nerf.core.select.geometry import patch_anchors
 
-        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth, opacity)
+        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth, opacity, edges=uses_edges(self))
         self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
                                        auto))
         return auto
