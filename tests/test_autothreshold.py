@@ -22,6 +22,15 @@ def _disc(h: int, w: int, cy: float, cx: float, r: float) -> np.ndarray:
     return (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
 
 
+def _disc_before_slab(size: int, disc: tuple[float, float, float], slab: tuple[int, int, int, int]):
+    """(disc, slab) bool masks of a size x size image: a disc (cy, cx, r) and the rows/columns (y0, y1, x0, x1)
+    of a slab it touches, without the disc."""
+    d = _disc(size, size, *disc)
+    s = np.zeros((size, size), bool)
+    s[slab[0]:slab[1], slab[2]:slab[3]] = True
+    return d, s & ~d
+
+
 def test_two_clear_modes_give_a_threshold_between_them():
     rng = np.random.default_rng(0)
     obj = _disc(96, 96, 48, 48, 20)
@@ -37,10 +46,7 @@ def test_support_of_similar_colour_touching_the_object_is_left_out():
     where it leaks onto the support, and the threshold stays above that jump."""
     rng = np.random.default_rng(1)
     h = w = 96
-    obj = _disc(h, w, 40, 48, 16)
-    support = np.zeros((h, w), bool)
-    support[54:80, 10:86] = True
-    support &= ~obj
+    obj, support = _disc_before_slab(h, (40, 48, 16), (54, 80, 10, 86))
     sim = np.full((h, w), 0.2) + rng.normal(0.0, 0.02, (h, w))
     sim[support] = 0.72 + rng.normal(0.0, 0.02, int(support.sum()))
     sim[obj] = 0.95 + rng.normal(0.0, 0.015, int(obj.sum()))
@@ -81,10 +87,7 @@ def test_the_patch_view_uses_depth_edges_only_where_the_masks_can():
 
     rng = np.random.default_rng(3)
     h = w = 64
-    disc = _disc(h, w, 32, 32, 12)
-    slab = np.zeros((h, w), bool)
-    slab[20:60, 8:56] = True
-    slab &= ~disc
+    disc, slab = _disc_before_slab(h, (32, 32, 12), (20, 60, 8, 56))
     sim = np.where(disc, 0.8, np.where(slab, 0.6, 0.1)) + rng.normal(0.0, 0.01, (h, w))
     depth = np.where(disc, 3.0, 4.0).astype(np.float32)
     opacity = np.ones((h, w), np.float32)
