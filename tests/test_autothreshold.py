@@ -101,6 +101,24 @@ def test_the_patch_view_uses_depth_edges_only_where_the_masks_can():
     assert patch_auto_threshold(sim, patch, depth, opacity, edges=False) == alone
 
 
+def test_a_patch_covering_most_of_a_small_object_still_finds_it():
+    """A 12x12 object (0.9) on a table of similar colour (0.45) that fills the view: the 9x9 patch covers more than
+    half of the object, and the few patch pixels on the object's far side of a barrier do not count as seeds. The
+    object's plateau (1.8x the patch) is the object, not the patch alone; at 2x the table's plateau won."""
+    rng = np.random.default_rng(4)
+    h = w = 64
+    obj = np.zeros((h, w), bool)
+    obj[26:38, 26:38] = True
+    sim = np.where(obj, 0.9, 0.45) + rng.normal(0.0, 0.01, (h, w))
+    barrier = np.zeros((h, w), bool)
+    barrier[:, 26] = True  # a depth edge along the object's left side, under the patch's first column
+    seeds = np.zeros((h, w), bool)
+    seeds[27:36, 26:35] = True
+    a = auto_threshold(sim, seeds, barrier)
+    assert a.jump is not None and 0.4 <= a.jump < a.value < 0.88, (a.value, a.jump)
+    assert _iou(grow(sim > a.value, seeds, barrier), obj & ~barrier) > 0.95
+
+
 def test_patch_auto_threshold_accepts_a_fraction_rect_and_big_maps():
     sim = np.full((300, 200), 0.1, np.float32)
     sim[100:200, 50:150] = 0.9
