@@ -183,7 +183,7 @@ def uses_edges(selection) -> bool:
     """Whether the masks of `selection` (its geometry name) are bounded by depth edges."""
     from repaint_nerf.core.select.geometry import parts_named
 
-    return parts_named(getattr(selection, "geometry", "full")).edges
+    return parts_named(selection.geometry).edges
 
 
 def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarray] | None = None) -> float:
