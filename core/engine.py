@@ -331,7 +331,8 @@ class Engine:
                                             workspace=self.workspace, cache=ViewCache(self.field, self.grid, cams,
                                                                                           render_opts=opts),
                                             names=list(self.scene.train.names or []) or None,
-                                            refine=workspace_refiner(self.workspace, self.scene.train.images))
+                                            refine=workspace_refiner(self.workspace, self.scene.train.images),
+                                            images=self.scene.train.images)
         finally:
             self.field.train(was_training)
         self.selection.save(self.workspace)

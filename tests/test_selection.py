@@ -483,7 +483,7 @@ def test_select_cli_writes_masks_matching_ground_truth(trained_ws, tmp_path):
                  "--out", str(tmp_path / "full"), "--geometry", "full"]) == 0
     index = json.loads((ws.masks_dir / "index.json").read_text())
     # this 32-px field's depth is too rough for the 2D parts (fit_parts): asked for, and left out
-    assert set(index["geometry_asked"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote", "attach"}
+    assert set(index["geometry_asked"]) == {"edges", "grow", "holes", "cleanup3d", "creases", "vote", "attach", "image"}
     assert index["geometry"] == ["cleanup3d"]
     assert Selection.load(ws).geometry == "full"  # saved with the selection, so a later mask pass uses it too
     assert len(load_masks(tmp_path / "full")) == len(scene.train)

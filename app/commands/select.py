@@ -131,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
     threshold = sel.threshold
     names = list(scene.train.names)
     sel.geometry = args.geometry
-    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine)
+    masks = masks_for_views(field, grid, cams, sel, workspace=ws, cache=cache, names=names, refine=refine,
+                            images=scene.train.images)
     sel_path = sel.save(ws)
     out = Path(args.out)
     write_masks(out, masks, names, {"threshold": threshold, "cleanup": sel.cleanup})

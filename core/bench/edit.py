@@ -107,12 +107,12 @@ def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
     sel = Selection()
     sel.add_patch(maps.feature, patch)
     sel.threshold = sel.auto_threshold = selection_auto_threshold(sel, maps)
-    masks = masks_for_views(trainer.field, trainer.grid, cams, sel)
+    masks = masks_for_views(trainer.field, trainer.grid, cams, sel, images=scene.train.images)
     sim = sel.similarity(maps.feature).float().cpu().numpy()
     sel.add_anchors(patch_anchors(patch_pixels(sim.shape, patch), sim, maps.depth.numpy(), maps.opacity.numpy(),
                                   cams.to("cpu")[view:view + 1], sel.threshold))
     test_masks = masks_for_views(trainer.field, trainer.grid, scene.field_cameras(test_split).to(trainer.device), sel,
-                                 training_views=False)
+                                 training_views=False, images=scene.split(test_split).images)
     inter = sum(int(np.count_nonzero(m & g)) for m, g in zip(masks, gt_train))
     union = sum(int(np.count_nonzero(m | g)) for m, g in zip(masks, gt_train))
     return masks, test_masks, {"patch": patch.to_dict(), "train_iou": inter / max(1, union),

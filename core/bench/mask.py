@@ -5,7 +5,7 @@ workspace, a patch placed automatically inside the object in one training view (
 ground-truth mask, a small square), then mask IoU over all test views: at the automatic threshold
 (core.select.autothreshold; this is `final.iou`), at the fixed 0.5, at the best threshold of a sweep,
 with and without each geometry part (core.select.geometry: depth edges, seeded growth, holes, the voxel
-3D clean-up, creases, the views' vote, border attachment), against training steps, with and without depth
+3D clean-up, creases, the views' vote, border attachment, the photo's edges), against training steps, with and without depth
 supervision (sparse/triangulated priors, never the ground-truth depth); patch-to-mask time on a 256x256
 feature map and MB of cached features.
 Returns dicts and picture arrays; the CLI driver is app/bench/mask.py.
@@ -117,11 +117,12 @@ class Evaluator:
     """Masks of the test views for one patch query on the current field, at any threshold and with any
     geometry parts; the patch's own training view joins them (its seeds, its depth edges)."""
 
-    def __init__(self, field, grid, train_cams, test_cams):
+    def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None):
         from repaint_nerf.core.select.masks import render_view_maps
 
         self.test = [render_view_maps(field, grid, test_cams, i) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
+        self.train_images, self.test_images = train_images, test_images  # the photos, for the image part
         self._train: dict = {}
 
     def train_maps(self, view: int):
@@ -157,7 +158,9 @@ class Evaluator:
         local = type(patch)(n, patch.x0, patch.y0, patch.x1, patch.y1)
         all_sims, maps = sims + [sel.similarity(pm.feature)], self.test + [pm]
         seeds = [(n, patch_pixels(tuple(pm.depth.shape), local))]
-        out = {t: shaped_masks(all_sims, maps, cams, seeds, t, parts)[:n] for t in thresholds}
+        images = None if self.test_images is None or self.train_images is None else \
+            list(self.test_images) + [self.train_images[patch.view]]
+        out = {t: shaped_masks(all_sims, maps, cams, seeds, t, parts, images)[:n] for t in thresholds}
         return out, sims
 
     def editor_masks(self, view: int, rect, parts_list: list) -> tuple[list[list[np.ndarray]], float]:
@@ -178,7 +181,8 @@ class Evaluator:
         maps, oc = [self.test[i] for i in others], cams[torch.tensor(others)]
         sims = [sel.similarity(v.feature) for v in maps]
         seeds = selection_seeds(sel, maps, oc)
-        return [shaped_masks(sims, maps, oc, seeds, auto, parts) for parts in parts_list], auto
+        images = None if self.test_images is None else [self.test_images[i] for i in others]
+        return [shaped_masks(sims, maps, oc, seeds, auto, parts, images) for parts in parts_list], auto
 
 
 def default_parts(ev: Evaluator):
@@ -338,7 +342,8 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
     for s in evals:
         trainer.train(steps=s)
         trainer.field.eval()
-        ev = Evaluator(trainer.field, trainer.grid, train_cams, test_cams)
+        ev = Evaluator(trainer.field, trainer.grid, train_cams, test_cams, scene.train.images,
+                       scene.split("test" if "test" in scene.splits else "train").images)
         auto = ev.auto_threshold(patch)
         m3, _ = ev.masks(patch, (auto,), default_parts(ev))
         m2, _ = ev.masks(patch, (auto,), variants["none"])

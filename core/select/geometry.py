@@ -240,7 +240,8 @@ class GeometryParts:
     """Which geometry parts a mask uses (bench mask measures each): depth-edge barriers, seeded growth
     with seeds carried between views through the surface points, hole filling, the voxel 3D clean-up of
     cleanup3d (applied last), concave-crease barriers, the views' vote on each other's pixels, and the
-    border pixels' attachment by depth (`attach`)."""
+    border pixels' attachment by depth (`attach`), and the band along the mask's border re-decided on the view's
+    photo (core.select.image_edges; only where the views' images are given)."""
 
     edges: bool = True
     grow: bool = True
@@ -249,13 +250,15 @@ class GeometryParts:
     creases: bool = True
     vote: bool = True
     attach: bool = True
+    image: bool = True
 
     @staticmethod
     def none() -> "GeometryParts":
-        return GeometryParts(False, False, False, False, False, False, False)
+        return GeometryParts(False, False, False, False, False, False, False, False)
 
     def names(self) -> list[str]:
-        return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote", "attach") if getattr(self, k)]
+        return [k for k in ("edges", "grow", "holes", "cleanup3d", "creases", "vote", "attach", "image")
+                if getattr(self, k)]
 
 
 # 'basic' is the voxel clean-up only; 'full' (the default) adds every other part, where the depth allows it
@@ -265,7 +268,7 @@ class GeometryParts:
 # 32-px field full gave 0.734 against basic's 0.944 (its rough depth cut the sphere with edges): fit_parts now
 # turns the 2D parts off there.
 BASIC_PARTS = GeometryParts(edges=False, grow=False, holes=False, cleanup3d=True, creases=False, vote=False,
-                            attach=False)
+                            attach=False, image=False)
 FULL_PARTS = GeometryParts()
 GEOMETRY_NAMES = ("basic", "full")
 DEFAULT_GEOMETRY = "full"

@@ -124,12 +124,13 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
                     cleanup: bool | None = None, cache: ViewCache | None = None, names: list[str] | None = None,
                     progress: Callable[[int, int], None] | None = None, parts=None,
                     refine: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None,
-                    training_views: bool = True) -> list[np.ndarray]:
+                    training_views: bool = True, images: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """Masks (bool (H, W) numpy) of every view of `cameras` from one selection; saved into `workspace`
     (WS/masks) when given. `cameras` are the training views its patches index unless `training_views` is
     False (test views: only the selection's anchors seed them). `cleanup` (default: the selection's) applies
     the field's geometry (`parts`, a geometry.GeometryParts, default: the parts the selection's `geometry`
-    names) seeded by the selection's positive patches in training views; `refine` (e.g.
+    names) seeded by the selection's positive patches in training views, with `images` (the views' photos, in
+    the order of `cameras`) for the parts that read them; `refine` (e.g.
     core.teachers.sam_refine.refine_masks bound to the views' images) maps the final masks."""
     from repaint_nerf.core.select.geometry import GeometryParts, fit_parts, parts_named
 
@@ -147,7 +148,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     seeds = selection_seeds(selection, maps, cameras, training_views) if do_cleanup else []
     asked = (parts or parts_named(selection.geometry)) if seeds else GeometryParts.none()
     parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
-    out = shaped_masks(sims, maps, cameras, seeds, t, parts)
+    out = shaped_masks(sims, maps, cameras, seeds, t, parts, images)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
@@ -174,11 +175,12 @@ def selection_seeds(selection, maps: list[ViewMaps], cameras,
 
 
 def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list, threshold: float,
-                 parts) -> list[np.ndarray]:
+                 parts, images: list[np.ndarray] | None = None) -> list[np.ndarray]:
     """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
-    pixels [(view, bool (H, W))] (`selection_seeds`); the one path the CLI, the editor and bench mask share."""
+    pixels [(view, bool (H, W))] (`selection_seeds`) and, given the views' photos, their edges
+    (core.select.image_edges); the one path the CLI, the editor and bench mask share."""
     from repaint_nerf.core.select.cleanup3d import cleanup_masks
-    from repaint_nerf.core.select.geometry import attach, geometric_masks
+    from repaint_nerf.core.select.geometry import MIN_OPACITY, attach, geometric_masks
 
     cams = cameras.to("cpu")
     np_sims = [s.float().cpu().numpy() for s in sims]
@@ -193,6 +195,10 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     out = [m.cpu().numpy().astype(bool) for m in masks]
     if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
         out = [attach(m, s > threshold, v.depth.numpy(), v.opacity.numpy()) for m, s, v in zip(out, np_sims, maps)]
+    if parts.image and seeds and images is not None:  # last: the photo decides the outline the geometry left
+        from repaint_nerf.core.select.image_edges import snap_masks
+
+        out = snap_masks(images, out, [v.opacity.numpy() > MIN_OPACITY for v in maps])
     return out
 
 
