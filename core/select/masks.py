@@ -7,7 +7,7 @@ training view in order) and WS/masks/index.json naming the view of each file.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -105,8 +105,6 @@ class ViewCache:
 
 def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
     """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer."""
-    from dataclasses import replace
-
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     n = len(cameras)
@@ -148,6 +146,8 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     seeds = selection_seeds(selection, maps, cameras, training_views) if do_cleanup else []
     asked = (parts or parts_named(selection.geometry)) if seeds else GeometryParts.none()
     parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
+    if images is None:  # what ran, for the index: the photo's edges need the photos
+        parts = replace(parts, image=False)
     out = shaped_masks(sims, maps, cameras, seeds, t, parts, images)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
