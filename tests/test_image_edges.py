@@ -34,6 +34,7 @@ def test_a_mask_one_pixel_off_the_outline_snaps_to_it():
     for off in (cv2.dilate(disc.astype(np.uint8), k) > 0, cv2.erode(disc.astype(np.uint8), k) > 0):
         assert _iou(off, disc) < 0.9
         assert _iou(snap_mask(img, off), disc) > 0.97
+        assert (snap_mask(img, off) == snap_mask(img, off)).all()  # the same input gives the same mask
 
 
 def test_far_pixels_and_pixels_without_a_surface_never_join():

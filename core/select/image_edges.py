@@ -40,6 +40,7 @@ def snap_mask(image: np.ndarray, mask: np.ndarray, surface: np.ndarray | None = 
     if not (labels == cv2.GC_BGD).any():  # GrabCut needs both models: a mask near the whole image stays
         return full.copy()
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(0)  # GrabCut seeds its colour models by k-means: the same mask and photo give the same result
     cv2.grabCut(img, labels, None, bgd, fgd, ITERATIONS, cv2.GC_INIT_WITH_MASK)
     out = full.copy()
     out[box] = (labels == cv2.GC_FGD) | (labels == cv2.GC_PR_FGD)
