@@ -57,13 +57,11 @@ def snap_masks(images: list[np.ndarray], masks: list[np.ndarray],
 
 
 def _bgr8(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """A contiguous uint8 BGR copy of an RGB(A) image (uint8, or float in [0, 1]) at `shape` (H, W)."""
-    a = np.asarray(image)
-    if a.ndim == 2:
-        a = np.repeat(a[..., None], 3, 2)
-    a = a[..., :3]
-    if a.dtype != np.uint8:
-        a = (np.clip(a.astype(np.float32), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    """A contiguous uint8 BGR copy of an image at `shape` (H, W), read as the teachers read it (`check_image`:
+    RGB(A), uint8 or float in [0, 1]; RGBA over white)."""
+    from repaint_nerf.core.teachers.base import check_image
+
+    a = check_image(image)
     if a.shape[:2] != tuple(shape):
         a = cv2.resize(a, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(a[..., ::-1])
