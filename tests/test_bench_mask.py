@@ -25,13 +25,15 @@ def test_bench_mask_figures_and_the_editors_way():
     g0 = _ball_gt(train, 0, centers[0], 0.22).numpy()
     ys, xs = np.nonzero(g0)
     cy, cx = int(np.median(ys)), int(np.median(xs))
-    res = evaluate(Evaluator(field, None, train, test), Patch(0, cx - 1, cy - 1, cx + 2, cy + 2), gts)
+    train_gts = [_ball_gt(train, i, centers[0], 0.22).numpy() for i in range(len(train))]
+    res = evaluate(Evaluator(field, None, train, test), Patch(0, cx - 1, cy - 1, cx + 2, cy + 2), gts, train_gts)
     for k in ("iou", "iou_fixed", "best_iou", "iou_before"):
         assert 0.0 <= res[k] <= 1.0, k
     assert res["best_iou"] == max(res["iou_by_threshold"].values())
     assert res["iou"] > 0.85 and res["no_geometry"]["iou"] < 0.75  # the voxel clean-up drops the look-alike
+    assert res["train_iou"] > 0.85  # the training views' masks, which select writes, hold the one ball too
     ed = res["editor"]
     assert ed["iou"] > 0.85 and ed["iou_no_geometry"] < 0.75 and 0 <= ed["view"] < 4
     text = line("balls", {"final": res, "curve": [{"step": 1, "seconds": 0.0}], "patch_to_mask_ms": 1.0,
                           "auto_threshold_ms": 0.5})
-    assert f"editor's way {ed['iou']:.3f}" in text
+    assert f"editor's way {ed['iou']:.3f}" in text and f"training views {res['train_iou']:.3f}" in text

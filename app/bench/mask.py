@@ -100,7 +100,8 @@ def line(name: str, res: dict) -> str:
     """One scene's summary line: auto / fixed / best, no geometry, each part's IoU, timing."""
     f = res["final"]
     parts = " ".join(f"{k}={v:.3f}" for k, v in f["parts"].items())
-    return (f"{name:9s} iou={f['iou']:.3f} at auto {f['auto_threshold']:.2f} | fixed 0.5 {f['iou_fixed']:.3f} | "
+    train = "" if f.get("train_iou") is None else f" (training views {f['train_iou']:.3f})"
+    return (f"{name:9s} iou={f['iou']:.3f} at auto {f['auto_threshold']:.2f}{train} | fixed 0.5 {f['iou_fixed']:.3f} | "
             f"best {f['best_iou']:.3f}@{f['best_threshold']:.2f} | no geometry {f['no_geometry']['iou']:.3f} "
             f"(best {f['no_geometry']['best_iou']:.3f}) | before {f['iou_before']:.3f} | {parts} | "
             f"editor's way {f['editor']['iou']:.3f} (no geometry {f['editor']['iou_no_geometry']:.3f}) | "
