@@ -338,6 +338,40 @@ def test_one_view_that_has_not_grown_a_part_does_not_outvote_a_view_that_has():
     assert (dropped[0] & lower0).sum() < 0.2 * lower0.sum()
 
 
+def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
+    """A free-view patch seeds every view through its surface points; in view 0 the depth edges fail (as a trained
+    field's noisy depth can), so its mask takes the ground, which has the box's colour. The views vote on the
+    first masks before they seed each other: the ground stays out of the other views (view 0 keeps the ground that
+    only it sees: no view votes on that)."""
+    import repaint_nerf.core.select.geometry as geometry
+
+    eyes = ((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6), (-0.4, -3.1, 1.8))
+    cams, depths, ids = _two_view_scene(eyes=eyes)
+    box = [i == 2 for i in ids]
+    sims = [np.where(b, 0.95, 0.9).astype(np.float32) for b in box]
+    ops = [np.ones_like(d) for d in depths]
+    seeds = []
+    for i, b in enumerate(box):
+        ys, xs = np.nonzero(b)
+        cy, cx = int(np.median(ys)), int(np.median(xs))
+        px = np.zeros_like(b)
+        px[cy - 1:cy + 2, cx - 1:cx + 2] = True
+        seeds.append((i, px & b))
+    real = geometry.view_barriers
+
+    def view0_without_edges(depths, surface, cameras, parts):
+        barriers, bands = real(depths, surface, cameras, parts)
+        barriers[0] = ~surface[0]
+        bands[0] = None if bands[0] is None else np.zeros_like(bands[0])
+        return barriers, bands
+
+    monkeypatch.setattr(geometry, "view_barriers", view0_without_edges)
+    first = geometric_masks(sims, depths, ops, cams, seeds, 0.5, GeometryParts(), rounds=0)
+    assert _iou(first[0], box[0]) < 0.3  # view 0 alone has leaked
+    out = geometric_masks(sims, depths, ops, cams, seeds, 0.5, GeometryParts())
+    assert all(_iou(m, b) > 0.9 for m, b in zip(out[1:], box[1:])), [_iou(m, b) for m, b in zip(out, box)]
+
+
 @pytest.fixture(scope="module")
 def teacher_views(tmp_path_factory):
     """Per preset: default-teacher similarity to the auto patch, ground-truth depth and object mask in the
