@@ -151,6 +151,16 @@ class Evaluator:
 
         return selection_auto_threshold(self.selection(patch), self.train_maps(patch.view))
 
+    def _with_training_views(self, test_views: list[int]) -> tuple[list, object, list | None]:
+        """(maps, cameras, photos or None) of test views `test_views` followed by every training view: the views
+        `select` shapes masks over, with the held-out ones in front."""
+        maps = [self.test[i] for i in test_views] + [self.train_maps(i) for i in range(len(self.train_cams))]
+        test_cams = self.test_cams.to("cpu")[torch.tensor(test_views, dtype=torch.long)]
+        cams = _cat_cameras(test_cams, self.train_cams.to("cpu"))
+        images = None if self.test_images is None or self.train_images is None else \
+            [self.test_images[i] for i in test_views] + list(self.train_images)
+        return maps, cams, images
+
     def all_masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: (test views' masks, training views' masks)} (numpy bool), test similarity maps)."""
         from repaint_nerf.core.select.autothreshold import patch_pixels
@@ -158,12 +168,9 @@ class Evaluator:
 
         sel = self.selection(patch)
         n = len(self.test)
-        maps = self.test + [self.train_maps(i) for i in range(len(self.train_cams))]
+        maps, cams, images = self._with_training_views(list(range(n)))
         sims = [sel.similarity(m.feature) for m in maps]
-        cams = _cat_cameras(self.test_cams.to("cpu"), self.train_cams.to("cpu"))
         seeds = [(n + patch.view, patch_pixels(tuple(maps[n + patch.view].depth.shape), patch))]
-        images = None if self.test_images is None or self.train_images is None else \
-            list(self.test_images) + list(self.train_images)
         out = {}
         for t in thresholds:
             m = shaped_masks(sims, maps, cams, seeds, t, parts, images)
@@ -186,16 +193,12 @@ class Evaluator:
         m = self.test[view]
         sel = Selection()
         sel.add_patch(m.feature, rect)
-        tc = self.test_cams.to("cpu")
         auto = sel.anchor_patch(sel.similarity(m.feature).float().numpy(), rect, m.depth.numpy(), m.opacity.numpy(),
-                                tc[view])
+                                self.test_cams.to("cpu")[view])
         others = [i for i in range(len(self.test)) if i != view]
-        maps = [self.test[i] for i in others] + [self.train_maps(i) for i in range(len(self.train_cams))]
-        cams = _cat_cameras(tc[torch.tensor(others)], self.train_cams.to("cpu"))
+        maps, cams, images = self._with_training_views(others)
         sims = [sel.similarity(v.feature) for v in maps]
         seeds = selection_seeds(sel, maps, cams)  # the anchors only: the rect's view (-1) is none of these
-        images = None if self.test_images is None or self.train_images is None else \
-            [self.test_images[i] for i in others] + list(self.train_images)
         k = len(others)
         return [shaped_masks(sims, maps, cams, seeds, auto, parts, images)[:k] for parts in parts_list], auto
 
