@@ -497,10 +497,13 @@ def geometric_masks(sims: list[np.ndarray], depths: list[np.ndarray], opacities:
     seed_px = [np.zeros(np.shape(s), bool) for s in sims]
     for view, px in seeds:
         seed_px[view] |= np.asarray(px, bool) & surface[view]
+
+    def voted(ms: list[np.ndarray]) -> list[np.ndarray]:  # the marked pixels stay whatever the other views say
+        return [m | seed_px[i] for i, m in enumerate(vote(ms, depths, surface, cameras))] if parts.vote else ms
+
     masks = [_region(sims[i], threshold, seed_px[i], barriers[i], bands[i], depths[i], parts) if seed_px[i].any()
              else np.zeros(np.shape(sims[i]), bool) for i in range(n)]
-    if parts.vote:  # several seeded views (a free-view patch's anchors): one view's leak must not seed the rest
-        masks = [m | seed_px[i] for i, m in enumerate(vote(masks, depths, surface, cameras))]
+    masks = voted(masks)  # several seeded views (a free-view patch's anchors): one view's leak must not seed the rest
     rng = np.random.default_rng(rng_seed)
     for _ in range(rounds):
         pts = _interior_points(masks, barriers, depths, cameras, rng, MAX_SEED_POINTS)
@@ -509,8 +512,7 @@ def geometric_masks(sims: list[np.ndarray], depths: list[np.ndarray], opacities:
             s = seed_px[i] | project_seeds(pts, depths[i], cameras, i)
             s &= (np.asarray(sims[i]) > threshold) | seed_px[i]
             new.append(_region(sims[i], threshold, s, barriers[i], bands[i], depths[i], parts))
-        if parts.vote:
-            new = [m | seed_px[i] for i, m in enumerate(vote(new, depths, surface, cameras))]
+        new = voted(new)
         if all((a == b).all() for a, b in zip(new, masks)):
             break
         masks = new
