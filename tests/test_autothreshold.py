@@ -338,6 +338,62 @@ def test_one_view_that_has_not_grown_a_part_does_not_outvote_a_view_that_has():
     assert (dropped[0] & lower0).sum() < 0.2 * lower0.sum()
 
 
+def _plain_vote(masks, depths, surface, cams, tol):
+    """The vote one view pair at a time (the reference the batched `vote` is checked against)."""
+    from repaint_nerf.core.select.geometry import VOTE_MARGIN, surface_points
+
+    out = []
+    for i, m in enumerate(masks):
+        pts = torch.from_numpy(surface_points(m, depths[i], cams, i))
+        pro, against = np.zeros(len(pts), int), np.zeros(len(pts), int)
+        for j, mj in enumerate(masks):
+            if j == i or not mj.any() or not len(pts):
+                continue
+            uv, z = cams.project(pts, j)
+            h, w = depths[j].shape
+            u, v = np.floor(uv[:, 0].numpy()).astype(int), np.floor(uv[:, 1].numpy()).astype(int)
+            inside = (z.numpy() > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            u, v = np.where(inside, u, 0), np.where(inside, v, 0)
+            seen = inside & surface[j][v, u] & (np.abs(depths[j][v, u] - z.numpy()) < tol * z.numpy())
+            pro += seen & mj[v, u]
+            against += seen & ~mj[v, u]
+        keep = m.copy().reshape(-1)
+        keep[np.flatnonzero(m)[against > VOTE_MARGIN * pro]] = False
+        out.append(keep.reshape(m.shape))
+    return out
+
+
+def test_batched_projection_and_vote_match_one_view_at_a_time_across_view_sizes(monkeypatch):
+    """Seeds and votes project every point into all views at once (a padded stack of their depth maps, in chunks);
+    with views of different sizes and chunks of a few points they give what one view at a time gives."""
+    from repaint_nerf.core.select import geometry
+    from repaint_nerf.core.select.geometry import SEED_DEPTH_TOL, project_seeds, surface_points, vote
+
+    cams, depths, ids = _two_view_scene(eyes=((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6)))
+    depths[1] = depths[1][:50, :40].copy()  # view 1 cropped: its pixels keep their rays (same cx, cy)
+    ids[1] = ids[1][:50, :40]
+    cams.width[1], cams.height[1] = 40, 50
+    surface = [np.ones(d.shape, bool) for d in depths]
+    surface[2][:, :20] = False
+    box = [i == 2 for i in ids]
+    leak = np.zeros_like(box[0])
+    ys, xs = np.nonzero(box[0])
+    leak[ys.max() + 3:ys.max() + 8, xs.min():xs.max()] = True
+    masks = [box[0] | leak, box[1], box[2]]
+    monkeypatch.setattr(geometry, "PROJECT_CHUNK", 7)  # a few points per chunk, split unevenly
+    for got, want in zip(vote(masks, depths, surface, cams), _plain_vote(masks, depths, surface, cams,
+                                                                           SEED_DEPTH_TOL)):
+        assert got.shape == want.shape and (got == want).all()
+    pts = surface_points(box[0], depths[0], cams, 0)
+    seeds = project_seeds(pts, depths, cams)
+    for j, d in enumerate(depths):
+        uv, z = cams.project(torch.from_numpy(pts), j)
+        seen, u, v = geometry.seen_pixels(uv.numpy(), z.numpy(), d)
+        want = np.zeros(d.shape, bool)
+        want[v[seen], u[seen]] = True
+        assert seeds[j].shape == d.shape and (seeds[j] == want).all() and want.any()
+
+
 def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
     """A free-view patch seeds every view through its surface points; in view 0 the depth edges fail (as a trained
     field's noisy depth can), so its mask takes the ground, which has the box's colour. The views vote on the

@@ -325,32 +325,64 @@ def surface_points(mask: np.ndarray, depth: np.ndarray, cameras, view: int) -> n
     return (o + d * t[:, None]).cpu().numpy().astype(np.float32)
 
 
-def project_seeds(points: np.ndarray, depth: np.ndarray, cameras, view: int, tol: float = SEED_DEPTH_TOL) -> np.ndarray:
-    """Pixels of view `view` (bool (H, W)) where one of `points` is seen: it projects inside the image
-    and its depth agrees with the view's rendered depth (not hidden behind another surface)."""
+def project_seeds(points: np.ndarray, depths: list[np.ndarray], cameras, tol: float = SEED_DEPTH_TOL
+                  ) -> list[np.ndarray]:
+    """Pixels of each view of `cameras` (bool (H, W) per view of `depths`) where one of `points` is seen: it
+    projects inside the image and its depth agrees with the view's rendered depth (not hidden behind another
+    surface). All views at once (`project_into`)."""
+    out = [np.zeros(np.shape(d), bool) for d in depths]
+    if len(points):
+        stack = depth_stack(depths)
+        for _, seen, u, v in project_into(points, stack, cameras, range(len(depths)), tol):
+            for k in np.flatnonzero(seen.any(1)):
+                out[k][v[k][seen[k]], u[k][seen[k]]] = True
+    return out
+
+
+def depth_stack(depths: list[np.ndarray], surface: list[np.ndarray] | None = None) -> np.ndarray:
+    """The views' z-depth maps as one float32 (V, H, W) array, 0 off `surface` and where a smaller view is padded
+    (views may differ in size): a depth of 0 sees no point in front of the camera (`seen_pixels`)."""
+    h = max(np.shape(d)[0] for d in depths)
+    w = max(np.shape(d)[1] for d in depths)
+    out = np.zeros((len(depths), h, w), np.float32)
+    for k, d in enumerate(depths):
+        d = np.asarray(d, np.float32)
+        out[k, :d.shape[0], :d.shape[1]] = d if surface is None else np.where(surface[k], d, 0.0)
+    return out
+
+
+PROJECT_CHUNK = 1 << 21  # (view, point) pairs projected at once: ~100 MB of temporaries
+
+
+def project_into(points: np.ndarray, stack: np.ndarray, cameras, views, tol: float = SEED_DEPTH_TOL):
+    """Project `points` (P, 3) into the views `views` (V indices of `cameras`) whose depth maps are `stack`
+    (V, H, W), in chunks of points: yields (point indices, seen (V, p) bool, u, v (V, p)) per chunk (`seen_pixels`)."""
     import torch
 
-    out = np.zeros(depth.shape, bool)
-    if not len(points):
-        return out
-    uv, z = cameras.project(torch.from_numpy(points).to(cameras.c2w), int(view))
-    seen, u, v = seen_pixels(uv.cpu().numpy(), z.cpu().numpy(), depth, tol)
-    out[v[seen], u[seen]] = True
-    return out
+    views = torch.as_tensor(list(views), dtype=torch.long)
+    step = max(1, PROJECT_CHUNK // max(1, len(views)))
+    pts = torch.from_numpy(np.ascontiguousarray(points, np.float32))
+    for a in range(0, len(pts), step):
+        uv, z = cameras.project_views(pts[a:a + step], views)
+        seen, u, v = seen_pixels(uv.cpu().numpy(), z.cpu().numpy(), stack, tol)
+        yield np.arange(a, min(a + step, len(pts))), seen, u, v
 
 
 def seen_pixels(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tol: float = SEED_DEPTH_TOL
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which of the points projected to pixels `uv` (P, 2) at depths `z` (P,) a view with z-depth map `depth`
-    sees: in front of the camera, inside the image, and at the depth the view renders there (not hidden
-    behind another surface). Returns (seen (P,) bool, u, v) with u, v clipped to the image where not seen."""
-    h, w = depth.shape
-    ok = (z > 0) & np.isfinite(uv).all(1)  # points behind the camera project nowhere
-    u = np.floor(np.where(ok, uv[:, 0], -1)).astype(np.int64)
-    v = np.floor(np.where(ok, uv[:, 1], -1)).astype(np.int64)
+    (H, W) sees: in front of the camera, inside the image, and at the depth the view renders there (not hidden
+    behind another surface). Returns (seen (P,) bool, u, v) with u, v clipped to the image where not seen.
+    With a stack of V views' maps (V, H, W) (`depth_stack`), `uv` (V, P, 2) and `z` (V, P) hold the points
+    projected into each view, and so do the results."""
+    h, w = depth.shape[-2:]
+    ok = (z > 0) & np.isfinite(uv).all(-1)  # points behind the camera project nowhere
+    u = np.floor(np.where(ok, uv[..., 0], -1)).astype(np.int64)
+    v = np.floor(np.where(ok, uv[..., 1], -1)).astype(np.int64)
     ok &= (u >= 0) & (u < w) & (v >= 0) & (v < h)
     u, v = np.where(ok, u, 0), np.where(ok, v, 0)
-    return ok & (np.abs(depth[v, u] - z) < tol * np.maximum(z, 1e-9)), u, v
+    at = depth[v, u] if depth.ndim == 2 else depth[np.arange(len(depth))[:, None], v, u]
+    return ok & (np.abs(at - z) < tol * np.maximum(z, 1e-9)), u, v
 
 
 MAX_ANCHORS = 512  # surface points kept from a free-view patch (a saved selection holds them)
@@ -374,12 +406,8 @@ def patch_anchors(patch_px: np.ndarray, similarity: np.ndarray, depth: np.ndarra
 
 def anchor_seeds(points: np.ndarray, depths: list[np.ndarray], cameras) -> list[tuple[int, np.ndarray]]:
     """(view, bool (H, W) pixels) of every view of `cameras` that sees one of `points` (`project_seeds`)."""
-    out = []
-    for i, d in enumerate(depths):
-        px = project_seeds(np.asarray(points, np.float32), np.asarray(d, np.float32), cameras, i)
-        if px.any():
-            out.append((i, px))
-    return out
+    px = project_seeds(np.asarray(points, np.float32), depths, cameras)
+    return [(i, p) for i, p in enumerate(px) if p.any()]
 
 
 def _region(sim: np.ndarray, t: float, seeds: np.ndarray, barrier: np.ndarray, band: np.ndarray | None,
@@ -428,28 +456,30 @@ def vote(masks: list[np.ndarray], depths: list[np.ndarray], surface: list[np.nda
     A leak across one view's contact line is outside the other views' masks; a part of the object seen
     by one view only has no votes and stays; a part that some views' masks have not reached yet (their growth
     stopped at a groove a texture left in the depth) is not outvoted by them alone."""
-    import torch
-
     voters = [i for i, m in enumerate(masks) if m.any()]
+    if len(voters) < 2:
+        return list(masks)
+    stack = depth_stack([depths[j] for j in voters], [surface[j] for j in voters])
+    inside = np.zeros(stack.shape, bool)
+    for k, j in enumerate(voters):
+        inside[k, :masks[j].shape[0], :masks[j].shape[1]] = masks[j]
+    rows = np.arange(len(voters))[:, None]
+    row_of = {j: k for k, j in enumerate(voters)}
     out = []
     for i, m in enumerate(masks):
-        idx = np.flatnonzero(m)
-        others = [j for j in voters if j != i]
-        if not idx.size or not others:
+        if i not in row_of:
             out.append(m)
             continue
         pts = surface_points(m, depths[i], cameras, i)
-        uv, z = cameras.project_views(torch.from_numpy(pts), torch.tensor(others))
-        uv, z = uv.cpu().numpy(), z.cpu().numpy()
         pro = np.zeros(len(pts), np.int64)
         against = np.zeros(len(pts), np.int64)
-        for k, j in enumerate(others):
-            seen, u, v = seen_pixels(uv[k], z[k], depths[j], tol)
-            seen &= surface[j][v, u]
-            pro += seen & masks[j][v, u]
-            against += seen & ~masks[j][v, u]
+        for at, seen, u, v in project_into(pts, stack, cameras, voters, tol):
+            seen[row_of[i]] = False  # a view does not vote on itself
+            hit = inside[rows, v, u]
+            pro[at] = (seen & hit).sum(0)
+            against[at] = (seen & ~hit).sum(0)
         keep = m.copy().reshape(-1)
-        keep[idx[against > VOTE_MARGIN * pro]] = False
+        keep[np.flatnonzero(m)[against > VOTE_MARGIN * pro]] = False
         out.append(keep.reshape(m.shape))
     return out
 
@@ -508,9 +538,8 @@ def geometric_masks(sims: list[np.ndarray], depths: list[np.ndarray], opacities:
     for _ in range(rounds):
         pts = _interior_points(masks, barriers, depths, cameras, rng, MAX_SEED_POINTS)
         new = []
-        for i in range(n):
-            s = seed_px[i] | project_seeds(pts, depths[i], cameras, i)
-            s &= (np.asarray(sims[i]) > threshold) | seed_px[i]
+        for i, carried in enumerate(project_seeds(pts, depths, cameras)):
+            s = (seed_px[i] | carried) & ((np.asarray(sims[i]) > threshold) | seed_px[i])
             new.append(_region(sims[i], threshold, s, barriers[i], bands[i], depths[i], parts))
         new = voted(new)
         if all((a == b).all() for a, b in zip(new, masks)):
