@@ -37,3 +37,4 @@ def test_bench_mask_figures_and_the_editors_way():
     text = line("balls", {"final": res, "curve": [{"step": 1, "seconds": 0.0}], "patch_to_mask_ms": 1.0,
                           "auto_threshold_ms": 0.5})
     assert f"editor's way {ed['iou']:.3f}" in text and f"training views {res['train_iou']:.3f}" in text
+    assert res["select_seconds"] > 0 and res["select_views"] == len(train) and " s select (" in text

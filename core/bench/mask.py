@@ -177,6 +177,21 @@ class Evaluator:
             out[t] = (m[:n], m[n:])
         return out, sims[:n]
 
+    def select_seconds(self, patch, threshold: float, parts) -> float:
+        """Seconds `select` takes to shape the training views' masks from the patch once their maps are rendered
+        (similarity, geometry, clean-up, photo edges over every training view; the cost of a Repaint's masks)."""
+        from repaint_nerf.core.select.autothreshold import patch_pixels
+        from repaint_nerf.core.select.masks import shaped_masks
+
+        maps = [self.train_maps(i) for i in range(len(self.train_cams))]
+        t0 = time.perf_counter()
+        sel = self.selection(patch)
+        sims = [sel.similarity(m.feature) for m in maps]
+        seeds = [(patch.view, patch_pixels(tuple(maps[patch.view].depth.shape), patch))]
+        shaped_masks(sims, maps, self.train_cams.to("cpu"), seeds, threshold, parts,
+                     None if self.train_images is None else list(self.train_images))
+        return time.perf_counter() - t0
+
     def masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: test masks (numpy bool)}, test similarity maps)."""
         out, sims = self.all_masks(patch, thresholds, parts)
@@ -228,7 +243,7 @@ def editor_iou(ev: Evaluator, gts: list[np.ndarray]) -> dict:
 def evaluate(ev: Evaluator, patch, gts: list[np.ndarray], train_gts: list[np.ndarray] | None = None) -> dict:
     """The final figures of one field and patch: IoU at the automatic threshold (default geometry parts), at
     the fixed 0.5, at the best of a sweep, without geometry, without each part, and as before this
-    change (0.5 and the voxel clean-up only); given the training views' ground truth, also the IoU of the
+    change (0.5 and the voxel clean-up only); the seconds `select` takes over the training views; given the training views' ground truth, also the IoU of the
     training views' masks at the automatic threshold (`train_iou`: what `select` writes for the repaint)."""
     from repaint_nerf.core.select.geometry import GeometryParts
 
@@ -257,6 +272,7 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray], train_gts: list[np.nda
                             "iou_by_threshold": {f"{t:.2f}": plain_t[t] for t in THRESHOLDS}},
             "parts": parts, "default_parts": variants["default"].names(), "editor": editor_iou(ev, gts),
             "iou_before": iou(before[FIXED], gts), "masks": full[auto],
+            "select_seconds": ev.select_seconds(patch, auto, variants["default"]), "select_views": len(ev.train_cams),
             "train_iou": None if train_gts is None else iou(both[auto][1], train_gts)}
 
 
