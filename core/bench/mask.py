@@ -124,19 +124,15 @@ class Evaluator:
     for the repaint) come out beside the test views' (held out: scored against ground truth the field never saw)."""
 
     def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None):
-        from repaint_nerf.core.select.masks import render_view_maps
+        from repaint_nerf.core.select.masks import ViewCache, render_view_maps
 
         self.test = [render_view_maps(field, grid, test_cams, i) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
         self.train_images, self.test_images = train_images, test_images  # the photos, for the image part
-        self._train: dict = {}
+        self.train_cache = ViewCache(field, grid, train_cams)  # the training views' maps, as `select` caches them
 
     def train_maps(self, view: int):
-        from repaint_nerf.core.select.masks import render_view_maps
-
-        if view not in self._train:
-            self._train[view] = render_view_maps(self.field, self.grid, self.train_cams, view)
-        return self._train[view]
+        return self.train_cache.get(view)
 
     def selection(self, patch):
         from repaint_nerf.core.select.selection import Selection
@@ -178,18 +174,16 @@ class Evaluator:
         return out, sims[:n]
 
     def select_seconds(self, patch, threshold: float, parts) -> float:
-        """Seconds `select` takes to shape the training views' masks from the patch once their maps are rendered
-        (similarity, geometry, clean-up, photo edges over every training view; the cost of a Repaint's masks)."""
-        from repaint_nerf.core.select.autothreshold import patch_pixels
-        from repaint_nerf.core.select.masks import shaped_masks
+        """Seconds `select` (core.select.masks.masks_for_views) takes to shape the training views' masks from the
+        patch once their maps are rendered (similarity, geometry, clean-up, photo edges; the cost of a Repaint's masks)."""
+        from repaint_nerf.core.select.masks import masks_for_views
 
-        maps = [self.train_maps(i) for i in range(len(self.train_cams))]
+        for i in range(len(self.train_cams)):
+            self.train_maps(i)
         t0 = time.perf_counter()
-        sel = self.selection(patch)
-        sims = [sel.similarity(m.feature) for m in maps]
-        seeds = [(patch.view, patch_pixels(tuple(maps[patch.view].depth.shape), patch))]
-        shaped_masks(sims, maps, self.train_cams.to("cpu"), seeds, threshold, parts,
-                     None if self.train_images is None else list(self.train_images))
+        masks_for_views(self.field, self.grid, self.train_cams, self.selection(patch), threshold,
+                        cache=self.train_cache, parts=parts,
+                        images=None if self.train_images is None else list(self.train_images))
         return time.perf_counter() - t0
 
     def masks(self, patch, thresholds, parts) -> tuple[dict, list]:
