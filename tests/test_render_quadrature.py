@@ -140,3 +140,43 @@ def test_rays_starting_inside_geometry():
         with torch.no_grad():
             out = render_rays(field, grid, o, d, RenderOptions(outputs=("opacity",)))
         assert torch.allclose(out["opacity"], expected, atol=sigma * STEP)
+
+
+class _HazeBeforeWall(BoxField):
+    """A thin haze (a fifth of the density) on z in [-0.6, -0.4] in front of a wall on z in [0, 0.5]."""
+
+    def shape(self, x: torch.Tensor) -> torch.Tensor:
+        z = x[:, 2]
+        return torch.where((z >= 0.0) & (z <= 0.5), 1.0, torch.where((z >= -0.6) & (z <= -0.4), 0.1, 0.0)).to(x.dtype)
+
+
+@pytest.mark.parametrize("strategy", ["rounds", "filter"])
+def test_median_depth_is_where_transmittance_falls_through_half(strategy):
+    """Uniform cube: T = exp(-sigma (t - tn)) falls through 0.5 at tn + ln 2 / sigma (closed form) on rays that get
+    that opaque, and the median is the expected depth on the others. A haze in front of a wall: the median lies on
+    the wall, which the expected depth blends with the haze."""
+    sigma = 0.6
+    field = BoxField((-1, -1, -1), (1, 1, 1), sigma=sigma)
+    o, d = _rays(256, seed=2, spread=1.5)
+    opts = RenderOptions(outputs=("depth", "median_depth", "opacity"), t_threshold=0.0, strategy=strategy)
+    with torch.no_grad():
+        out = render_rays(field, None, o.float(), d.float(), opts)
+    inv = 1.0 / d
+    t0, t1 = (-1 - o) * inv, (1 - o) * inv
+    tn = torch.minimum(t0, t1).amax(-1).clamp_min(0)
+    length = (torch.maximum(t0, t1).amin(-1) - tn).clamp_min(0)
+    opaque = sigma * length > math.log(2.0) + 0.05
+    thin = (length > 0.01) & (sigma * length < math.log(2.0) - 0.05)
+    assert opaque.sum() > 50 and thin.sum() > 5
+    med = out["median_depth"].double()
+    assert torch.allclose(med[opaque], (tn + math.log(2.0) / sigma)[opaque], atol=STEP)
+    assert torch.equal(out["median_depth"][thin], out["depth"][thin])
+
+    haze = _HazeBeforeWall((-1, -1, -1), (1, 1, 1), sigma=20.0)
+    o2, d2 = torch.tensor([[0.1, -0.2, -3.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+    with torch.no_grad():
+        out2 = render_rays(haze, None, o2, d2, opts)
+    t_haze = math.exp(-20.0 * 0.1 * 0.2)  # T behind the haze: 0.67
+    wall = 3.0 + math.log(t_haze / 0.5) / 20.0
+    assert abs(float(out2["median_depth"][0]) - wall) < 2 * STEP
+    assert float(out2["depth"][0]) < wall - 0.1  # the expected depth is pulled towards the haze

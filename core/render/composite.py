@@ -46,15 +46,30 @@ def segment_sum(values: Tensor, ray: Tensor, n_rays: int) -> Tensor:
     return out.index_add(0, ray, values)
 
 
+def median_crossing(tau: Tensor, trans: Tensor, t_start: Tensor, t_end: Tensor) -> Tensor:
+    """Per sample: the distance inside it where the ray's transmittance falls through 0.5 (T = trans at its
+    start, exp(-tau) across it, exponential in between), or 0 where it does not fall through 0.5 there. Summed
+    per ray this is the median termination distance (at most one sample of a ray crosses)."""
+    after = trans * torch.exp(-tau)
+    cross = (trans >= 0.5) & (after < 0.5)
+    frac = torch.log(trans.clamp_min(0.5) / 0.5) / tau.clamp_min(1e-12)
+    return torch.where(cross, t_start + (t_end - t_start) * frac.clamp(0.0, 1.0), torch.zeros_like(t_start))
+
+
 def composite(sigma: Tensor, t_start: Tensor, t_end: Tensor, t: Tensor, ray: Tensor, n_rays: int,
-              values: dict[str, Tensor] | None = None, tau_before: Tensor | None = None) -> dict[str, Tensor]:
+              values: dict[str, Tensor] | None = None, tau_before: Tensor | None = None,
+              median: bool = False) -> dict[str, Tensor]:
     """Weights and per-ray sums: 'opacity' (sum w), 'depth_sum' (sum w t), one sum w*v per entry of
     `values` (e.g. 'rgb', 'feature'), 'tau' (per-ray sum of optical thickness, float64, detached),
-    'weights' (packed). `tau_before` (n_rays,) continues rays composited in earlier rounds."""
+    'weights' (packed); with `median`, 'median_sum' (`median_crossing`: the median distance, 0 where T stays
+    above 0.5). `tau_before` (n_rays,) continues rays composited in earlier rounds."""
     tau = optical_depth(sigma, t_start, t_end)
     alpha = -torch.expm1(-tau)
-    w = transmittance(tau, ray, tau_before) * alpha
+    trans = transmittance(tau, ray, tau_before)
+    w = trans * alpha
     out = {"weights": w, "opacity": segment_sum(w, ray, n_rays), "depth_sum": segment_sum(w * t, ray, n_rays)}
+    if median:
+        out["median_sum"] = segment_sum(median_crossing(tau, trans, t_start, t_end), ray, n_rays)
     for name, v in (values or {}).items():
         out[name] = segment_sum(w[:, None] * v, ray, n_rays)
     out["tau"] = segment_sum(tau.detach().double(), ray, n_rays)

@@ -25,7 +25,7 @@ from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
 from repaint_nerf.core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
 from repaint_nerf.core.scene.cameras import Cameras
 
-OUTPUTS = ("rgb", "depth", "opacity", "feature")
+OUTPUTS = ("rgb", "depth", "opacity", "feature", "median_depth")
 STRATEGIES = ("auto", "filter", "rounds")
 
 
@@ -191,7 +191,8 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
                 sigma, vals = _evaluate(field, s, d, heads)
             acc.stats["samples"] += len(s)
             with _Timer(acc, "compositing", prof, dev):
-                out = composite(sigma, s.t_start, s.t_end, s.t, s.ray, n, vals, tau_before=carry)
+                out = composite(sigma, s.t_start, s.t_end, s.t, s.ray, n, vals, tau_before=carry,
+                                median="median_depth" in opts.outputs)
                 for name, v in out.items():
                     if name not in ("weights", "tau"):
                         totals[name] = totals[name] + v if name in totals else v
@@ -217,7 +218,8 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         acc.stats["samples"] += len(s)
         acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
         with _Timer(acc, "compositing", prof, dev):
-            totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals)
+            totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals,
+                               median="median_depth" in opts.outputs)
     return totals
 
 
@@ -258,7 +260,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
         pieces.append(out)
 
     result: dict = {}
-    cat = {k: torch.cat([p[k] for p in pieces]) if pieces else None for k in ("opacity", "depth_sum", *heads)}
+    sums = ("opacity", "depth_sum", *heads) + (("median_sum",) if "median_depth" in opts.outputs else ())
+    cat = {k: torch.cat([p[k] for p in pieces]) if pieces else None for k in sums}
     opacity = cat["opacity"] if pieces else torch.zeros(0, device=dev)
     if "opacity" in need:
         result["opacity"] = opacity
@@ -270,6 +273,15 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
     if "depth" in opts.outputs:
         # expected distance of termination: sum(w t) / sum(w), bounded by the ray's last sample
         result["depth"] = (cat["depth_sum"] / opacity.clamp_min(1e-6)) if pieces else torch.zeros(0, device=dev)
+    if "median_depth" in opts.outputs:
+        # where the transmittance falls through 0.5 (nerfstudio's median depth): one surface's distance where a
+        # noisy or half-transparent one lies in front of it, which the expected depth blends; expected where
+        # the ray never gets that opaque
+        if pieces:
+            mean = cat["depth_sum"] / opacity.clamp_min(1e-6)
+            result["median_depth"] = torch.where(cat["median_sum"] > 0, cat["median_sum"], mean)
+        else:
+            result["median_depth"] = torch.zeros(0, device=dev)
     if "feature" in opts.outputs:
         result["feature"] = cat["feature"]
     if "opacity" not in opts.outputs:
@@ -288,15 +300,15 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
 def render_rays(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor,
                 opts: RenderOptions | None = None) -> dict:
     """Render unit-direction rays (R,3) in field space: the asked outputs ('rgb' (R,3), 'depth' (R,) along
-    the ray, 'opacity' (R,), 'feature' (R,F)) plus 'stats'. Differentiable; grid=None disables skipping."""
+    the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F)) plus 'stats'. Differentiable; grid=None disables skipping."""
     return _render(field, grid, origins, dirs, opts or RenderOptions(), None)
 
 
 @torch.no_grad()
 def render_camera(field, grid: OccupancyGrid | None, cameras: Cameras, i: int, opts: RenderOptions | None = None,
                   scale: float = 1.0, cancel: Callable[[], bool] | None = None) -> dict | None:
-    """Render camera i (field space) at `scale` times its resolution: 'rgb' (H,W,3), 'depth' (H,W) z-depth,
-    'opacity' (H,W), 'feature' (H,W,F) as asked, plus 'stats'; None when `cancel()` turns true."""
+    """Render camera i (field space) at `scale` times its resolution: 'rgb' (H,W,3), 'depth' and 'median_depth'
+    (H,W) z-depth, 'opacity' (H,W), 'feature' (H,W,F) as asked, plus 'stats'; None when `cancel()` turns true."""
     cam = cameras[int(i)]
     if scale != 1.0:
         cam = cam.scaled(scale)
@@ -311,7 +323,7 @@ def render_camera(field, grid: OccupancyGrid | None, cameras: Cameras, i: int, o
     for k, v in out.items():
         if k == "stats":
             continue
-        if k == "depth":
+        if k in ("depth", "median_depth"):
             v = v * dz.to(v.device)
         img[k] = v.reshape(h, w, *v.shape[1:])
     return img
