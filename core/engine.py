@@ -48,14 +48,16 @@ def editor_train_config(device: torch.device) -> TrainConfig:
 
 
 class FeatureView(NamedTuple):
-    """A rendered view's maps a patch selection reads: features (H, W, F), z-depth and opacity (H, W), and the
-    camera (field space) at the size they were rendered."""
+    """A rendered view's maps a patch selection reads: features (H, W, F), median and expected z-depth and opacity
+    (H, W) (core.select.masks.ViewMaps says which part reads which depth), and the camera (field space) at the size
+    they were rendered."""
 
     key: tuple
     feature: torch.Tensor
     depth: np.ndarray
     opacity: np.ndarray
     camera: object
+    expected_depth: np.ndarray
 
 
 @dataclasses.dataclass
@@ -214,8 +216,8 @@ class Engine:
         want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
         if self.selection is not None and "feature" not in want and self.has_feature_head():
             want = want + ("feature",)
-        if "feature" in want:  # a patch drawn on this view needs its surface points (FeatureView)
-            want = want + tuple(o for o in ("depth", "opacity") if o not in want)
+        if "feature" in want:  # a patch drawn on this view needs its surface points and edges (FeatureView)
+            want = want + tuple(o for o in ("depth", "median_depth", "opacity") if o not in want)
         capped = not full and scale >= self._max_scale(cameras)
         if capped:
             scale = self._max_scale(cameras)
@@ -236,8 +238,8 @@ class Engine:
         if "feature" in out:
             cam = cameras.to("cpu")[0]
             self._feature_cache = FeatureView(self._camera_key(cameras), out["feature"].float().cpu(),
-                                              _np(out["depth"]), _np(out["opacity"]),
-                                              cam if scale == 1.0 else cam.scaled(scale))
+                                              _np(out["median_depth"]), _np(out["opacity"]),
+                                              cam if scale == 1.0 else cam.scaled(scale), _np(out["depth"]))
         result: dict = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
         result["capped"] = capped  # the finest render this view gets: the viewport needs no refinement
         if self.selection is not None and "feature" in out:
@@ -274,7 +276,8 @@ class Engine:
         similarity = _np(self.selection.similarity(view.feature))
         auto = None
         if mode != "sub":  # saved with the selection, and the editor's slider starts at it
-            auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera)
+            auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera,
+                                               view.expected_depth)
         return PatchSelected(similarity, auto)
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:

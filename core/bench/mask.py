@@ -160,16 +160,17 @@ class Evaluator:
     def all_masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: (test views' masks, training views' masks)} (numpy bool), test similarity maps)."""
         from repaint_nerf.core.select.autothreshold import patch_pixels
-        from repaint_nerf.core.select.masks import shaped_masks
+        from repaint_nerf.core.select.masks import patch_seeds, shaped_masks
 
         sel = self.selection(patch)
         n = len(self.test)
         maps, cams, images = self._with_training_views(list(range(n)))
         sims = [sel.similarity(m.feature) for m in maps]
-        seeds = [(n + patch.view, patch_pixels(tuple(maps[n + patch.view].depth.shape), patch))]
+        view = n + patch.view
+        pixels = patch_pixels(tuple(maps[view].depth.shape), patch)
         out = {}
-        for t in thresholds:
-            m = shaped_masks(sims, maps, cams, seeds, t, parts, images)
+        for t in thresholds:  # as select seeds them (masks.selection_seeds)
+            m = shaped_masks(sims, maps, cams, patch_seeds(view, pixels, maps, cams, sims, t), t, parts, images)
             out[t] = (m[:n], m[n:])
         return out, sims[:n]
 
@@ -203,7 +204,7 @@ class Evaluator:
         sel = Selection()
         sel.add_patch(m.feature, rect)
         auto = sel.anchor_patch(sel.similarity(m.feature).float().numpy(), rect, m.depth.numpy(), m.opacity.numpy(),
-                                self.test_cams.to("cpu")[view])
+                                self.test_cams.to("cpu")[view], m.edge_depth().numpy())
         others = [i for i in range(len(self.test)) if i != view]
         maps, cams, images = self._with_training_views(others)
         sims = [sel.similarity(v.feature) for v in maps]
@@ -402,8 +403,9 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
     cams = trainer.cameras
     scale = size / float(max(int(cams.width[patch.view]), int(cams.height[patch.view])))
     out = render_camera(trainer.field, trainer.grid, cams, patch.view,
-                        RenderOptions(outputs=("feature", "depth", "opacity")), scale=scale)
-    feat, depth, opacity = out["feature"], out["depth"].cpu().numpy(), out["opacity"].cpu().numpy()
+                        RenderOptions(outputs=("feature", "depth", "median_depth", "opacity")), scale=scale)
+    feat, depth, opacity = out["feature"], out["median_depth"].cpu().numpy(), out["opacity"].cpu().numpy()
+    expected = out["depth"].cpu().numpy()  # the automatic threshold's edges, as Engine.select reads them
     cam = cams.to("cpu")[patch.view].scaled(scale)
     big = Patch(patch.view, *(int(round(v * scale)) for v in (patch.x0, patch.y0, patch.x1, patch.y1)))
     total, auto = [], []
@@ -412,11 +414,11 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
         sel = Selection()
         sel.add_patch(feat, big)
         sim = sel.similarity(feat).float().cpu().numpy()  # on the host, as Engine.select has it
-        t = sel.anchor_patch(sim, big, depth, opacity, cam)  # what Engine.select runs
+        t = sel.anchor_patch(sim, big, depth, opacity, cam, expected)  # what Engine.select runs
         _ = sim > t  # the mask on screen
         total.append(time.perf_counter() - t0)
         t1 = time.perf_counter()  # the automatic threshold's share, timed on its own
-        patch_auto_threshold(sim, big, depth, opacity)
+        patch_auto_threshold(sim, big, expected, opacity)
         auto.append(time.perf_counter() - t1)
     return {"total": 1000.0 * float(np.median(total)), "auto": 1000.0 * float(np.median(auto))}
 

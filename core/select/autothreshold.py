@@ -170,13 +170,14 @@ def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=N
 
 def selection_auto_threshold(selection, maps) -> float:
     """The automatic threshold of a selection's positive patches, in the training view they were drawn
-    in (`maps`: that view's ViewMaps: features, depth, opacity); their union seeds the region."""
+    in (`maps`: that view's ViewMaps: features, depths, opacity; the region stops at `ViewMaps.edge_depth`'s
+    edges); their union seeds the region."""
     sim = selection.similarity(maps.feature).float().cpu().numpy()
     seeds = np.zeros(sim.shape, bool)
     for p in selection.patches:
         if p.positive:
             seeds |= patch_pixels(sim.shape, p)
-    return patch_auto_threshold_px(sim, seeds, maps.depth, maps.opacity, edges=uses_edges(selection)).value
+    return patch_auto_threshold_px(sim, seeds, maps.edge_depth(), maps.opacity, edges=uses_edges(selection)).value
 
 
 def uses_edges(selection) -> bool:

@@ -60,14 +60,17 @@ class Selection:
         (core.select.geometry.patch_anchors): they seed the training views' masks as a training-view patch does."""
         self.anchors.extend([round(float(x), 5) for x in p] for p in np.asarray(points, np.float32).reshape(-1, 3))
 
-    def anchor_patch(self, similarity: np.ndarray, patch, depth: np.ndarray, opacity: np.ndarray, camera) -> float:
+    def anchor_patch(self, similarity: np.ndarray, patch, depth: np.ndarray, opacity: np.ndarray, camera,
+                     edge_depth: np.ndarray | None = None) -> float:
         """For a positive patch drawn in a view that is not a training view (the editor's free camera, `camera` at
-        the maps' size): its automatic threshold in that view (kept as `auto_threshold`) and its surface points at
-        that threshold (kept as anchors). Returns the threshold."""
+        the maps' size): its automatic threshold in that view (kept as `auto_threshold`; its region stops at the
+        edges of `edge_depth`, else of `depth`: masks.ViewMaps) and its surface points on `depth` at that
+        threshold (kept as anchors). Returns the threshold."""
         from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels, uses_edges
         from repaint_nerf.core.select.geometry import patch_anchors
 
-        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth, opacity, edges=uses_edges(self))
+        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth if edge_depth is None else edge_depth,
+                                                          opacity, edges=uses_edges(self))
         self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
                                        auto))
         return auto
