@@ -101,6 +101,31 @@ def test_the_patch_view_uses_depth_edges_only_where_the_masks_can():
     assert patch_auto_threshold(sim, patch, depth, opacity, edges=False) == alone
 
 
+def test_a_free_view_patch_takes_its_threshold_from_the_edge_depth_and_its_points_from_the_depth():
+    """Selection.anchor_patch (the editor's patch): its automatic threshold's region stops at the edges of
+    `edge_depth` (the expected depth, ViewMaps.edge_depth) and its surface points lie on `depth` (the median)."""
+    from repaint_nerf.core.select.selection import Selection
+
+    rng = np.random.default_rng(3)
+    h = w = 64
+    disc, slab = _disc_before_slab(h, (32, 32, 12), (20, 60, 8, 56))
+    sim = np.where(disc, 0.8, np.where(slab, 0.6, 0.1)) + rng.normal(0.0, 0.01, (h, w))
+    edged = np.where(disc, 3.0, 4.0).astype(np.float32)
+    flat = np.full((h, w), 2.5, np.float32)  # no edge: the region leaks onto the slab
+    opacity = np.ones((h, w), np.float32)
+    cam = Cameras.create(look_at((0.0, -5.0, 0.0), (0.0, 0.0, 0.0))[None], 60.0, 60.0, w / 2, h / 2, w, h)
+    patch = (0.45, 0.45, 0.55, 0.55)
+    sel = Selection()
+    with_edges = sel.anchor_patch(sim, patch, flat, opacity, cam, edge_depth=edged)
+    assert with_edges == patch_auto_threshold(sim, patch, edged, opacity) < 0.55
+    pts = sel.anchor_points()
+    eye = np.array([0.0, -5.0, 0.0])
+    along = (pts - eye) @ np.array([0.0, 1.0, 0.0])  # z-depth: the camera looks along +y
+    assert len(pts) and np.allclose(along, 2.5, atol=1e-3)  # on `depth`, not on `edge_depth`'s 3.0
+    without = Selection().anchor_patch(sim, patch, flat, opacity, cam)
+    assert without == patch_auto_threshold(sim, patch, flat, opacity) > 0.62  # above the slab: no edge holds it
+
+
 def test_a_patch_covering_most_of_a_small_object_still_finds_it():
     """A 12x12 object (0.9) on a table of similar colour (0.45) that fills the view: the 9x9 patch covers more than
     half of the object, and the few patch pixels on the object's far side of a barrier do not count as seeds. The
@@ -394,25 +419,16 @@ def test_batched_projection_and_vote_match_one_view_at_a_time_across_view_sizes(
         assert seeds[j].shape == d.shape and (seeds[j] == want).all() and want.any()
 
 
-def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
-    """A free-view patch seeds every view through its surface points; in view 0 the depth edges fail (as a trained
-    field's noisy depth can), so its mask takes the ground, which has the box's colour. The views vote on the
-    first masks before they seed each other: the ground stays out of the other views (view 0 keeps the ground that
-    only it sees: no view votes on that)."""
+def _four_views_view0_leaking(monkeypatch):
+    """The box-above-ground scene seen by four cameras, the box's similarity a little above the ground's, with
+    view 0's depth edges and creases switched off (as a trained field's noisy depth can lose them): (cameras,
+    depths, opacities, box masks, similarity maps)."""
     import repaint_nerf.core.select.geometry as geometry
 
     eyes = ((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6), (-0.4, -3.1, 1.8))
     cams, depths, ids = _two_view_scene(eyes=eyes)
     box = [i == 2 for i in ids]
     sims = [np.where(b, 0.95, 0.9).astype(np.float32) for b in box]
-    ops = [np.ones_like(d) for d in depths]
-    seeds = []
-    for i, b in enumerate(box):
-        ys, xs = np.nonzero(b)
-        cy, cx = int(np.median(ys)), int(np.median(xs))
-        px = np.zeros_like(b)
-        px[cy - 1:cy + 2, cx - 1:cx + 2] = True
-        seeds.append((i, px & b))
     real = geometry.view_barriers
 
     def view0_without_edges(depths, surface, cameras, parts):
@@ -422,6 +438,25 @@ def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
         return barriers, bands
 
     monkeypatch.setattr(geometry, "view_barriers", view0_without_edges)
+    return cams, depths, [np.ones_like(d) for d in depths], box, sims
+
+
+def _centre_pixels(mask: np.ndarray) -> np.ndarray:
+    """A 3x3 patch of pixels at the median pixel of `mask`, inside it."""
+    ys, xs = np.nonzero(mask)
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    px = np.zeros_like(mask)
+    px[cy - 1:cy + 2, cx - 1:cx + 2] = True
+    return px & mask
+
+
+def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
+    """A free-view patch seeds every view through its surface points; in view 0 the depth edges fail (as a trained
+    field's noisy depth can), so its mask takes the ground, which has the box's colour. The views vote on the
+    first masks before they seed each other: the ground stays out of the other views (view 0 keeps the ground that
+    only it sees: no view votes on that)."""
+    cams, depths, ops, box, sims = _four_views_view0_leaking(monkeypatch)
+    seeds = [(i, _centre_pixels(b)) for i, b in enumerate(box)]
     first = geometric_masks(sims, depths, ops, cams, seeds, 0.5, GeometryParts(), rounds=0)
     assert _iou(first[0], box[0]) < 0.3  # view 0 alone has leaked
     out = geometric_masks(sims, depths, ops, cams, seeds, 0.5, GeometryParts())
@@ -429,39 +464,21 @@ def test_one_seeded_views_leak_does_not_spread_to_the_other_views(monkeypatch):
 
 
 def test_a_training_view_patch_seeds_the_views_that_see_it_so_its_views_leak_is_outvoted(monkeypatch):
-    """A patch drawn in training view 0, whose depth edges fail there (as a trained field's can at a low contact
-    line): seeded by its own pixels alone, view 0's mask takes the ground and its surface points grow the ground in
-    every view. `patch_seeds` also seeds the views that see the patch's surface points, and the views vote on those
+    """A patch drawn in training view 0, whose depth edges fail there (as at a trained lemon field's low tray):
+    seeded by its own pixels alone, view 0's mask takes the ground and its surface points grow the ground in every
+    view. `patch_seeds` also seeds the views that see the patch's surface points, and the views vote on those
     first masks, so the ground stays out of the other views."""
-    import repaint_nerf.core.select.geometry as geometry
     from repaint_nerf.core.select.masks import ViewMaps, patch_seeds
 
-    eyes = ((0.3, -3.0, 1.5), (-1.2, -2.7, 1.4), (1.0, -2.8, 1.6), (-0.4, -3.1, 1.8))
-    cams, depths, ids = _two_view_scene(eyes=eyes)
-    box = [i == 2 for i in ids]
-    sims = [np.where(b, 0.95, 0.9).astype(np.float32) for b in box]
-    ops = [np.ones_like(d) for d in depths]
+    cams, depths, ops, box, sims = _four_views_view0_leaking(monkeypatch)
     maps = [ViewMaps(torch.zeros(*d.shape, 4), torch.from_numpy(d), torch.from_numpy(o)) for d, o in zip(depths, ops)]
-    ys, xs = np.nonzero(box[0])
-    cy, cx = int(np.median(ys)), int(np.median(xs))
-    px = np.zeros_like(box[0])
-    px[cy - 1:cy + 2, cx - 1:cx + 2] = True
-    real = geometry.view_barriers
-
-    def view0_without_edges(depths, surface, cameras, parts):
-        barriers, bands = real(depths, surface, cameras, parts)
-        barriers[0] = ~surface[0]
-        bands[0] = None if bands[0] is None else np.zeros_like(bands[0])
-        return barriers, bands
-
-    monkeypatch.setattr(geometry, "view_barriers", view0_without_edges)
+    px = _centre_pixels(box[0])
     own = patch_seeds(0, px, maps, cams)  # no similarity given: the patch's own pixels only
     assert [v for v, _ in own] == [0]
     alone = geometric_masks(sims, depths, ops, cams, own, 0.5, GeometryParts())
     assert max(_iou(m, b) for m, b in zip(alone[1:], box[1:])) < 0.5  # the leak spread to every view
     seeds = patch_seeds(0, px, maps, cams, [torch.from_numpy(s) for s in sims], 0.5)
-    seen = sorted(v for v, _ in seeds)
-    assert seen == [0, 1, 2, 3]
+    assert sorted(v for v, _ in seeds) == [0, 1, 2, 3]
     assert all(int((p & ~box[v]).sum()) == 0 for v, p in seeds)  # on the box in every view
     out = geometric_masks(sims, depths, ops, cams, seeds, 0.5, GeometryParts())
     assert all(_iou(m, b) > 0.9 for m, b in zip(out[1:], box[1:])), [_iou(m, b) for m, b in zip(out, box)]

@@ -286,6 +286,43 @@ def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(saved, clean))
 
 
+class HazeBeforeWall(nn.Module):
+    """A half-transparent sheet (x in [0.1, 0.15], optical thickness 1.2: 70% opaque) in front of an opaque wall
+    (x >= 0.5): a thin surface a trained field's rays go on through."""
+
+    def __init__(self):
+        super().__init__()
+        self.bound = 1.0
+
+    def density(self, x):
+        sheet = ((x[:, 0] >= 0.1) & (x[:, 0] <= 0.15)).float() * 24.0
+        return sheet + (x[:, 0] >= 0.5).float() * 1000.0
+
+    def forward(self, x, d, outputs=("rgb",)):
+        out = {"sigma": self.density(x)}
+        if "rgb" in outputs:
+            out["rgb"] = torch.full((x.shape[0], 3), 0.5)
+        if "feature" in outputs:
+            out["feature"] = torch.ones(x.shape[0], 2)
+        return out
+
+
+def test_view_maps_put_the_surface_where_the_ray_turns_opaque_and_keep_the_expected_depth_for_edges():
+    """The selection's surface points read the median depth: on a 70%-opaque sheet before a wall it is the
+    sheet's, where the expected depth lies between the two (it blends them, as at a silhouette); the expected
+    depth is kept for the automatic threshold's edges (ViewMaps.edge_depth)."""
+    from repaint_nerf.core.render.renderer import RenderOptions
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.select.masks import render_view_maps
+
+    cam = Cameras.create(look_at((-1.0, 0.0, 0.0), (1.0, 0.0, 0.0))[None], 20.0, 20.0, 4.0, 4.0, 8, 8)
+    m = render_view_maps(HazeBeforeWall(), None, cam, 0, RenderOptions(max_samples=512))
+    z, ez = m.depth.numpy(), m.expected_depth.numpy()
+    assert np.all(np.abs(z - 1.1) < 0.05)  # median: inside the sheet (T falls through 0.5 at ~1.13)
+    assert np.all(ez > 1.18) and np.all(ez < 1.3)  # expected: ~0.7 x 1.12 + 0.3 x 1.5 = 1.23 blends the two
+    assert m.edge_depth() is m.expected_depth
+
+
 def _free_camera(size=48):
     """A camera between the ring's views, as the editor's free camera (not a training view)."""
     from repaint_nerf.core.scene.cameras import Cameras, look_at
