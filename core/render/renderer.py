@@ -270,18 +270,17 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
         if bg is not None and bg.dim() == 2 and bg.shape[0] != n_rays:
             raise UserError(f"per-ray background has {bg.shape[0]} rows for {n_rays} rays")
         result["rgb"] = apply_background(cat["rgb"] if pieces else torch.zeros(0, 3, device=dev), opacity, bg)
-    if "depth" in opts.outputs:
+    if "depth" in opts.outputs or "median_depth" in opts.outputs:
         # expected distance of termination: sum(w t) / sum(w), bounded by the ray's last sample
-        result["depth"] = (cat["depth_sum"] / opacity.clamp_min(1e-6)) if pieces else torch.zeros(0, device=dev)
-    if "median_depth" in opts.outputs:
-        # where the transmittance falls through 0.5 (nerfstudio's median depth): one surface's distance where a
-        # noisy or half-transparent one lies in front of it, which the expected depth blends; expected where
-        # the ray never gets that opaque
-        if pieces:
-            mean = cat["depth_sum"] / opacity.clamp_min(1e-6)
-            result["median_depth"] = torch.where(cat["median_sum"] > 0, cat["median_sum"], mean)
-        else:
-            result["median_depth"] = torch.zeros(0, device=dev)
+        expected = (cat["depth_sum"] / opacity.clamp_min(1e-6)) if pieces else torch.zeros(0, device=dev)
+        if "depth" in opts.outputs:
+            result["depth"] = expected
+        if "median_depth" in opts.outputs:
+            # where the transmittance falls through 0.5 (nerfstudio's median depth): one surface's distance where
+            # a noisy or half-transparent one lies in front of it, which the expected depth blends; expected where
+            # the ray never gets that opaque
+            result["median_depth"] = torch.where(cat["median_sum"] > 0, cat["median_sum"], expected) if pieces \
+                else expected
     if "feature" in opts.outputs:
         result["feature"] = cat["feature"]
     if "opacity" not in opts.outputs:
@@ -300,7 +299,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
 def render_rays(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor,
                 opts: RenderOptions | None = None) -> dict:
     """Render unit-direction rays (R,3) in field space: the asked outputs ('rgb' (R,3), 'depth' (R,) along
-    the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F)) plus 'stats'. Differentiable; grid=None disables skipping."""
+    the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F)) plus 'stats'.
+    Differentiable; grid=None disables skipping."""
     return _render(field, grid, origins, dirs, opts or RenderOptions(), None)
 
 

@@ -69,8 +69,8 @@ class Selection:
         from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels, uses_edges
         from repaint_nerf.core.select.geometry import patch_anchors
 
-        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, depth if edge_depth is None else edge_depth,
-                                                          opacity, edges=uses_edges(self))
+        edges_on = depth if edge_depth is None else edge_depth
+        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, edges_on, opacity, edges=uses_edges(self))
         self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
                                        auto))
         return auto
