@@ -96,6 +96,10 @@ def run(args: argparse.Namespace) -> int:
     sp = result["samples_per_ray"]
     print(f"render 128x128: {result['render_ms_128']:.1f} ms; samples/ray {sp['with_grid']:.1f} with grid, "
           f"{sp['without_grid']:.1f} without; peak RSS {result['peak_rss_mb']:.0f} MB")
+    fog = result["fog"]
+    if fog["ratio"] is not None:
+        print(f"first {fog['first_steps']} steps: {fog['first_mean_ms']:.0f} ms each, {fog['ratio']:.2f}x a later step "
+              f"({fog['later_median_ms']:.0f} ms)")
     print(f"step breakdown ({bd['step_ms']:.1f} ms/step):")
     for k, v in sorted(bd["fraction"].items(), key=lambda kv: -kv[1]):
         print(f"  {k:13s} {100 * v:5.1f}%  {bd['ms'][k]:8.2f} ms")

@@ -136,6 +136,21 @@ def render_figures(trainer) -> dict:
     }
 
 
+FOG_STEPS = 50  # issue 33: the first 50 steps cost at most 2x a later one
+
+
+def fog_figures(step_seconds: list[float], first: int = FOG_STEPS) -> dict:
+    """The fog phase's cost: mean seconds of the first `first` steps (grid sweeps included) against the median
+    step of the run's second half (at least `first` steps after them); None where the run is too short."""
+    import statistics
+
+    later = step_seconds[max(first, len(step_seconds) // 2):]
+    if len(step_seconds) < first or len(later) < first // 5:
+        return {"first_steps": first, "first_mean_ms": None, "later_median_ms": None, "ratio": None}
+    a, b = statistics.fmean(step_seconds[:first]), statistics.median(later)
+    return {"first_steps": first, "first_mean_ms": 1000 * a, "later_median_ms": 1000 * b, "ratio": a / b}
+
+
 def time_to(curve: list[dict], target: float) -> float | None:
     for a, b in zip([None] + curve[:-1], curve):
         if b["psnr"] >= target:
@@ -173,8 +188,9 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
     curve = [{"seconds": 0.0, "step": 0, "psnr": trainer.evaluate(**eval_kw)["psnr"]}]
     if progress is not None:
         progress(curve[0])
+    step_seconds: list[float] = []
     for k in range(1, evals + 1):
-        trainer.train(seconds=seconds * k / evals)
+        trainer.train(seconds=seconds * k / evals, callback=lambda info: step_seconds.append(info["seconds"]))
         ev = trainer.evaluate(**eval_kw)
         curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]})
         if progress is not None:
@@ -194,6 +210,7 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
         "final": {"psnr": final_ev["psnr"], "ssim": final_ev["ssim"], "steps": steps, "seconds": secs,
                   "views": final_ev["views"]},
         "steps_per_s": steps / max(secs, 1e-9),
+        "fog": fog_figures(step_seconds),
         "seconds_to_25_4": t25,
         "peak_rss_mb": _peak_rss_mb(),
         **figures,
