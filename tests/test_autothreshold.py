@@ -601,3 +601,26 @@ def test_attach_gives_border_pixels_to_the_surface_whose_depth_they_share():
     assert (attach(disc, np.ones((h, w), bool), depth, opacity_bg) == (disc | ring1)).all()
     # nothing to attach: the mask comes back as it was
     assert (attach(disc, disc, depth, opacity) == disc).all()
+
+
+def test_region_areas_equal_the_plain_labelling_on_random_maps():
+    """The bounding-box form labels less but must give the plain per-threshold labelling's areas exactly:
+    smooth random maps of many sizes, one or two seed patches, with and without barrier pixels."""
+    import cv2
+
+    from repaint_nerf.core.select.autothreshold import region_areas, region_areas_reference
+
+    rng = np.random.default_rng(0)
+    for trial in range(40):
+        h, w = (int(v) for v in rng.integers(3, 100, 2))
+        s = cv2.GaussianBlur(rng.random((h, w)).astype(np.float32), (0, 0), float(rng.uniform(0.5, 4)))
+        s = (s - s.min()) / (s.max() - s.min() + 1e-9)
+        seeds = np.zeros((h, w), bool)
+        y, x = int(rng.integers(0, h)), int(rng.integers(0, w))
+        seeds[y:y + int(rng.integers(1, 8)), x:x + int(rng.integers(1, 8))] = True
+        if trial % 3 == 0:
+            seeds[int(rng.integers(0, h)), int(rng.integers(0, w))] = True
+        barrier = rng.random((h, w)) < rng.uniform(0, 0.3) if trial % 2 else None
+        np.testing.assert_array_equal(region_areas(s, seeds, barrier), region_areas_reference(s, seeds, barrier))
+    empty = np.zeros((8, 8), bool)
+    assert not region_areas(np.ones((8, 8)), empty).any()
