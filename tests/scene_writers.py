@@ -104,3 +104,33 @@ def write_colmap(root: Path, c2w_gl: np.ndarray, model: str, params, w: int, h: 
     out = root / "sparse" / "0"
     out.mkdir(parents=True, exist_ok=True)
     rec.write_text(str(out)) if text else rec.write(str(out))
+
+
+def write_ngp_capture(scene_dir: Path, out: Path, missing=(), sharpness=None, extra: dict | None = None,
+                      gains=None) -> dict:
+    """An instant-ngp style capture from a generated scene: one `transforms.json` listing its train and test
+    frames (file paths images/NNNN.png), with per-frame `sharpness` when given, the frames numbered in `missing`
+    listed without their image, `extra` top-level keys (e.g. aabb_scale) and per-frame RGB `gains` (exposure /
+    white balance) multiplied into the images. Returns the JSON written."""
+    frames, meta = [], None
+    for split in ("train", "test"):
+        m = json.loads((Path(scene_dir) / f"transforms_{split}.json").read_text())
+        meta = meta or {k: m[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
+        for fr in m["frames"]:
+            frames.append((Path(scene_dir) / (fr["file_path"] + ".png"), fr["transform_matrix"]))
+    out_frames = []
+    for i, (src, pose) in enumerate(frames):
+        frame = {"file_path": f"images/{i:04d}.png", "transform_matrix": pose}
+        if sharpness is not None:
+            frame["sharpness"] = float(sharpness[i])
+        out_frames.append(frame)
+        if i in set(missing):
+            continue
+        img = cv2.cvtColor(cv2.imread(str(src), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        if gains is not None:
+            img = np.clip(img.astype(np.float32) * np.asarray(gains[i], np.float32) + 0.5, 0, 255).astype(np.uint8)
+        write_image(out / "images" / f"{i:04d}.png", img)
+    data = {**meta, **(extra or {}), "frames": out_frames}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "transforms.json").write_text(json.dumps(data))
+    return data

@@ -64,8 +64,9 @@ def frame_pose(frame: dict, path: Path, i: int) -> np.ndarray:
     return check_pose(m, path, f"frame {i} ('{frame.get('file_path')}')")
 
 
-def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
-    """The image file a frame names, relative to the JSON's folder, with or without an extension."""
+def find_image(root: Path, file_path: str, path: Path, i: int) -> Path | None:
+    """The image file a frame names, relative to the JSON's folder, with or without an extension; None when
+    it is not there (a path leaving the dataset folder is a `SceneError`)."""
     rel = str(file_path).replace("\\", "/")
     p = (root / rel).resolve()
     if Path(rel).is_absolute() or not p.is_relative_to(root.resolve()):
@@ -77,6 +78,15 @@ def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
         q = p.with_name(p.name + ext)
         if q.is_file():
             return q
+    return None
+
+
+def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
+    """`find_image`, with a missing image a `SceneError`."""
+    found = find_image(root, file_path, path, i)
+    if found is not None:
+        return found
+    p = (root / str(file_path).replace("\\", "/")).resolve()
     raise SceneError(f"frame {i}: image '{file_path}' not found (looked for {p} with and without an extension)",
                      path, hint="check file_path or add the missing image")
 
