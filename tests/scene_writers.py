@@ -107,11 +107,12 @@ def write_colmap(root: Path, c2w_gl: np.ndarray, model: str, params, w: int, h: 
 
 
 def write_ngp_capture(scene_dir: Path, out: Path, missing=(), sharpness=None, extra: dict | None = None,
-                      gains=None) -> dict:
+                      gains=None, alpha: bool = True) -> dict:
     """An instant-ngp style capture from a generated scene: one `transforms.json` listing its train and test
     frames (file paths images/NNNN.png), with per-frame `sharpness` when given, the frames numbered in `missing`
     listed without their image, `extra` top-level keys (e.g. aabb_scale) and per-frame RGB `gains` (exposure /
-    white balance) multiplied into the images. Returns the JSON written."""
+    white balance) multiplied into the images' colour; `alpha=False` drops a transparent background's alpha (an
+opaque photo of the object on a plain background). Returns the JSON written."""
     frames, meta = [], None
     for split in ("train", "test"):
         m = json.loads((Path(scene_dir) / f"transforms_{split}.json").read_text())
@@ -126,9 +127,12 @@ def write_ngp_capture(scene_dir: Path, out: Path, missing=(), sharpness=None, ex
         out_frames.append(frame)
         if i in set(missing):
             continue
-        img = cv2.cvtColor(cv2.imread(str(src), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        img = img[..., :3] if not alpha else img
         if gains is not None:
-            img = np.clip(img.astype(np.float32) * np.asarray(gains[i], np.float32) + 0.5, 0, 255).astype(np.uint8)
+            rgb = img[..., :3].astype(np.float32) * np.asarray(gains[i], np.float32) + 0.5
+            img = np.concatenate([np.clip(rgb, 0, 255).astype(np.uint8), img[..., 3:]], axis=-1)
         write_image(out / "images" / f"{i:04d}.png", img)
     data = {**meta, **(extra or {}), "frames": out_frames}
     out.mkdir(parents=True, exist_ok=True)
