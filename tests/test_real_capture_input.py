@@ -1,6 +1,6 @@
 """Real captures as instant-ngp and nerfstudio users bring them (issue 32), offline: synthetic scenes written as an
-instant-ngp `transforms.json` with frames whose image is missing, per-frame `sharpness`, `aabb_scale`, a far
-textured background without sparse points, and per-image exposure / white balance changes."""
+instant-ngp `transforms.json` with frames whose image is missing, per-frame `sharpness`, `aabb_scale`, OpenCV lens
+distortion, a far textured background without sparse points, and per-image exposure / white balance changes."""
 from __future__ import annotations
 
 import json
@@ -13,6 +13,8 @@ import pytest
 import torch
 
 from scene_writers import write_ngp_capture
+
+LENS = {"k1": -0.12, "k2": 0.02, "p1": 0.001, "p2": -0.0015}  # a phone's mild barrel distortion
 
 
 def _load(path, **kw):
@@ -32,13 +34,13 @@ def test_frames_without_an_image_are_skipped_with_one_counting_warning(scene_fac
     from repaint_nerf.core.scene.loaders.summary import scene_summary
 
     src = scene_factory("demo", size=16, views=12, test_views=4)
-    write_ngp_capture(src, tmp_path / "cap", missing=(1, 4, 6))
+    write_ngp_capture(src, tmp_path / "cap", missing=(1, 4, 6), lens=LENS)
     scene, said = _load(tmp_path / "cap")
     assert len(said) == 1 and "skipped 3 of 16 frames whose image is missing" in said[0], said
     assert sum(len(s) for s in scene.splits.values()) == 13
     names = [n for s in scene.splits.values() for n in s.names]
     assert not {"images/0001.png", "images/0004.png", "images/0006.png"} & set(names)
-    assert scene_summary(scene)["skipped"]["missing"] == 3
+    assert scene_summary(scene)["skipped"]["missing"] == 3 and scene.extra["camera_models"] == ["OPENCV"]
     assert main(["info", str(tmp_path / "cap")]) == 0
     out, err = capsys.readouterr()
     assert "skipped         3 frames whose image is missing" in out
@@ -141,8 +143,8 @@ def test_unbounded_content_is_told_from_poses_and_images_alone(textured_room, sc
     from repaint_nerf.core.field.contraction import warp_spec
     from repaint_nerf.core.scene.loaders.summary import format_summary, scene_summary
 
-    write_ngp_capture(textured_room, tmp_path / "room")
-    room, _ = _load(tmp_path / "room")
+    write_ngp_capture(textured_room, tmp_path / "room", lens=LENS, extra={"camera_model": "OPENCV"})
+    room, _ = _load(tmp_path / "room")  # undistorted at load, then probed
     assert room.points is None and room.kind == "unbounded", room.extra["kind_reason"]
     assert "quick probe" in room.extra["kind_reason"] and warp_spec(room)["kind"] == "contract"
     assert "quick probe" in format_summary(scene_summary(room))

@@ -61,7 +61,8 @@ def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: i
         groups = {"train": [order[k] for k in tr]}
         if te:
             groups["test"] = [order[k] for k in te]
-    out = {s: load_frames(meta, frames, idx, root, path, downscale, same_size=False, max_size=max_size)
+    models: set = set()
+    out = {s: load_frames(meta, frames, idx, root, path, downscale, same_size=False, max_size=max_size, models=models)
            for s, idx in groups.items() if idx and wanted(s, splits)}
     extra: dict = {"gt_dir": str(root / "gt")} if (root / "gt").is_dir() else {}
     aabb = parse_aabb(meta, path)
@@ -69,4 +70,6 @@ def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: i
         extra["aabb"] = aabb
     extra.update(content_reach(meta, root, path, aabb))
     extra["skipped"] = sel.report()
+    if models:
+        extra["camera_models"] = sorted(models)
     return Scene(root=root, format="nerfstudio", splits=out, background=parse_background(meta, path), extra=extra)

@@ -157,11 +157,12 @@ def frame_intrinsics(meta: dict, frame: dict, path: Path, i: int, image_size: tu
 
 
 def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path: Path, downscale: float,
-                same_size: bool, max_size: int = 0) -> SceneSplit:
+                same_size: bool, max_size: int = 0, models: set | None = None) -> SceneSplit:
     """Build one split from frames `idx` of a transforms file: validated poses, intrinsics, images.
 
     `same_size` (Blender) makes images of different sizes within the split a `SceneError`. Sizes come
     from the file headers; pixels are decoded one image at a time (full-size images are never all held).
+    `models`, when given, collects the names of the lens models undistorted (for `info`).
     """
     paths = [resolve_image(root, frames[i]["file_path"], path, i) for i in idx]
     poses = [frame_pose(frames[i], path, i) for i in idx]
@@ -177,6 +178,8 @@ def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path
         cam, pin = frame_intrinsics(meta, frames[i], path, i, sizes[k])
         cams.append(cam)
         pins.append(pin)
+        if models is not None and needs_undistortion(cam):
+            models.add(cam.model_name)
     pin = np.asarray(pins, dtype=np.float64)
     cameras = Cameras.create(np.stack(poses), pin[:, 0], pin[:, 1], pin[:, 2], pin[:, 3], pin[:, 4], pin[:, 5])
 
