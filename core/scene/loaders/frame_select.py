@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from repaint_nerf.core.errors import SceneError, SceneWarning, UserError
+from repaint_nerf.core.scene.loaders.common import as_float
 
 SHARPNESS_NEIGHBOURS = 3  # frames on each side whose mean sharpness a frame is compared with (instant-ngp's)
 
@@ -38,10 +39,7 @@ class FrameSelection:
 def check_sharpness_discard(value) -> float:
     """Validate a --sharpness-discard fraction (0 keeps every frame; 0.8 drops frames under 80% of their
     neighbours' mean sharpness)."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
+    v = as_float(value)
     if not math.isfinite(v) or not 0.0 <= v < 10.0:
         raise UserError(f"--sharpness-discard must be a number >= 0 (a fraction of the neighbours' mean "
                         f"sharpness), got {value!r}", hint="e.g. --sharpness-discard 0.8; 0 keeps every frame")
@@ -49,10 +47,7 @@ def check_sharpness_discard(value) -> float:
 
 
 def _sharpness(frame: dict) -> float | None:
-    try:
-        v = float(frame.get("sharpness"))
-    except (TypeError, ValueError):
-        return None
+    v = as_float(frame.get("sharpness"))
     return v if math.isfinite(v) else None
 
 

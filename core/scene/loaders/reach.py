@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.scene.loaders.common import as_float
 
 NGP_SCALE, NGP_OFFSET = 0.33, 0.5  # instant-ngp's NERF_SCALE and default offset
 DATAPARSER_FILE = "dataparser_transforms.json"
@@ -29,10 +30,7 @@ def parse_aabb_scale(meta: dict, path: Path) -> float | None:
     value = meta.get("aabb_scale")
     if value is None:
         return None
-    try:
-        k = float(value)
-    except (TypeError, ValueError):
-        k = float("nan")
+    k = as_float(value)
     if not math.isfinite(k) or k < 1.0:
         raise SceneError(f"'aabb_scale' must be a number >= 1 (instant-ngp uses 1, 2, 4, ..., 128), got {value!r}",
                          path, hint="remove the key, or give how many unit cubes the content reaches")

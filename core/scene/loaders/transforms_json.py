@@ -14,7 +14,7 @@ import numpy as np
 
 from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.cameras import Cameras
-from repaint_nerf.core.scene.loaders.common import check_pose, load_split
+from repaint_nerf.core.scene.loaders.common import as_float, check_pose, load_split
 from repaint_nerf.core.scene.loaders.images import IMAGE_EXTS, image_size, read_image
 from repaint_nerf.core.scene.loaders.undistort import make_camera, needs_undistortion, undistort_image, undistorted_camera
 from repaint_nerf.core.scene.scene import SceneSplit
@@ -102,10 +102,7 @@ def _number(meta: dict, frame: dict, key: str, path: Path, i: int):
     value = frame.get(key, meta.get(key))
     if value is None:
         return None
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
+    v = as_float(value)
     if not math.isfinite(v):
         raise SceneError(f"frame {i}: '{key}' is not a finite number ({value!r})", path)
     return v
