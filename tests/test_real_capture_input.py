@@ -215,3 +215,19 @@ def test_appearance_codes_by_scene_and_flag_saved_and_old_checkpoints_load(scene
                        render_camera(field, grid, cams, 0, opts)["rgb"])
     old = {k: v for k, v in tr.field_cfg.to_dict().items() if not k.startswith("appearance")}
     assert NGPField(FieldConfig.from_dict(old)).appearance is None  # a checkpoint from before the codes
+
+
+def test_a_nerf_synthetic_test_split_without_images_is_left_out_with_a_warning(scene_factory, tmp_path):
+    import shutil
+
+    from repaint_nerf.core.errors import SceneError
+
+    root = tmp_path / "s"
+    shutil.copytree(scene_factory("demo", size=16, views=6, test_views=2), root)
+    shutil.rmtree(root / "test")
+    scene, said = _load(root)
+    assert "test" not in scene.splits and len(scene.train) == 6
+    assert len(said) == 1 and "left out the test split" in said[0] and "none of the 2 frames" in said[0]
+    shutil.rmtree(root / "train")
+    with pytest.raises(SceneError, match="none of the 6 frames has its image"):
+        _load(root)

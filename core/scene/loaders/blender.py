@@ -7,9 +7,10 @@ nerfstudio files (frame_select.py, reach.py; instant-ngp reads these files the s
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
-from repaint_nerf.core.errors import SceneError
+from repaint_nerf.core.errors import SceneError, SceneWarning
 from repaint_nerf.core.scene.loaders.common import wanted
 from repaint_nerf.core.scene.loaders.frame_select import merge_reports, select_frames, warn_skipped
 from repaint_nerf.core.scene.loaders.reach import content_reach
@@ -43,8 +44,14 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None, max_size: int 
             depth_range = parse_depth_range(meta, path)
             reach = content_reach(meta, root, path, aabb)
         if wanted(split, splits):
-            sel = select_frames(meta, frames, list(range(len(frames))),
-                                lambda i: find_image(root, frames[i]["file_path"], path, i), path, sharpness_discard)
+            try:
+                sel = select_frames(meta, frames, list(range(len(frames))),
+                                    lambda i: find_image(root, frames[i]["file_path"], path, i), path, sharpness_discard)
+            except SceneError as exc:
+                if split == "train":
+                    raise
+                warnings.warn(f"left out the {split} split: {exc}", SceneWarning, stacklevel=2)  # train still opens
+                continue
             warn_skipped(sel, len(frames), path)
             reports.append(sel.report())
             out[split] = load_frames(meta, frames, sel.kept, root, path, downscale, same_size=True, max_size=max_size)
