@@ -43,7 +43,7 @@ def test_frames_without_an_image_are_skipped_with_one_counting_warning(scene_fac
     assert scene_summary(scene)["skipped"]["missing"] == 3 and scene.extra["camera_models"] == ["OPENCV"]
     assert main(["info", str(tmp_path / "cap")]) == 0
     out, err = capsys.readouterr()
-    assert "skipped         3 frames whose image is missing" in out
+    assert "skipped         3 frame(s) whose image is missing" in out
     assert err.count("warning:") == 1 and "skipped 3 of 16" in err  # one plain line, not a traceback
     write_ngp_capture(src, tmp_path / "none", missing=range(16))
     with pytest.raises(SceneError, match="none of the 16 frames has its image"):
@@ -89,7 +89,7 @@ def test_aabb_scale_sets_the_field_cube_the_kind_and_the_warp(scene_factory, tmp
         spec = warp_spec(scene)
         assert (spec is None) if extent is None else (spec["kind"] == "contract" and spec["extent"] == extent)
         text = format_summary(scene_summary(scene))
-        assert "instant-ngp's unit cube" in text and (extent is None or f"to {extent:g}x" in text)
+        assert "instant-ngp's unit cube" in text and (extent is None or f"marched to {extent:g}x" in text)
     forced, _ = _load(tmp_path / "k4", kind="bounded")
     assert warp_spec(forced) is None
     meta = json.loads((tmp_path / "k4" / "transforms.json").read_text())  # an aabb sets the unit cube instead

@@ -177,9 +177,9 @@ def warp_summary(scene) -> tuple[str, str]:
     kind = SCENE_WARPS.get(getattr(scene, "kind", "bounded"))
     if kind == "contract":
         e = contract_extent(scene)
-        src = f"aabb_scale {e:g}" if e != CONTRACT_EXTENT else "the default reach"
-        return (f"mip-NeRF 360 contraction beyond the field cube; rays march to {e:g}x its half-size ({src})",
-                f"{scene.kind} scene: far content keeps a place in the field")
+        src = f"the reach aabb_scale {e:g} gives" if scene.extra.get("aabb_scale", 1) > 1 else "the default reach"
+        return (f"mip-NeRF 360 contraction beyond the field cube, rays marched to {e:g}x its half-size",
+                f"an {scene.kind} scene: far content keeps a place in the field; {src}")
     if kind == "ndc":
         return "NDC of a reference camera", "forward-facing scene: depth reaches to infinity in one direction"
     return "none", "bounded scene: the field cube holds the content"

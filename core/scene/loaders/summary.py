@@ -83,9 +83,9 @@ def format_summary(info: dict) -> str:
     if sk:
         ex = sk["examples"]
         if sk["missing"]:
-            lines.append(f"skipped         {sk['missing']} frames whose image is missing (e.g. {ex['missing'][0]})")
+            lines.append(f"skipped         {sk['missing']} frame(s) whose image is missing (e.g. {ex['missing'][0]})")
         if sk["blurry"]:
-            lines.append(f"skipped         {sk['blurry']} blurry frames (sharpness below {sk['threshold']:g}x their "
+            lines.append(f"skipped         {sk['blurry']} blurry frame(s) (sharpness below {sk['threshold']:g}x their "
                          f"neighbours' mean)")
     k = info["intrinsics"]
     lines.append(f"intrinsics      fx={f(k['fx'])} fy={f(k['fy'])} cx={f(k['cx'])} cy={f(k['cy'])} "
