@@ -36,10 +36,31 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def show_scene_warnings() -> None:
+    """Print dataset warnings (core.errors.SceneWarning) as one plain `warning:` line, not Python's file:line form."""
+    import warnings
+
+    from repaint_nerf.core.errors import SceneWarning
+
+    previous = warnings.showwarning
+    if getattr(previous, "scene_warnings", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, SceneWarning):
+            print(f"warning: {message}", file=sys.stderr)
+        else:
+            previous(message, category, filename, lineno, file, line)
+
+    show.scene_warnings = True
+    warnings.showwarning = show
+
+
 def main(argv: list[str] | None = None) -> int:
     from repaint_nerf.core.errors import UserError
 
     argv = sys.argv[1:] if argv is None else argv
+    show_scene_warnings()
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:

@@ -30,3 +30,7 @@ class ModelNotFoundError(UserError):
 
 class WorkspaceError(UserError):
     """A workspace folder or file that is missing, corrupt or of another format version."""
+
+
+class SceneWarning(UserWarning):
+    """Something in a dataset that was worked around (frames skipped, a key ignored): said once, never fatal."""

@@ -82,7 +82,8 @@ def _load_with_settings(path: Path, ws: Workspace, kind: str | None) -> Scene:
     """Load `path` with the workspace's saved downscale and photo size cap (so a reopened scene matches)."""
     settings = ws.settings
     return load_scene(path, float(settings.get("downscale", 1.0)), kind=kind, workspace=ws.root,
-                      max_size=int(settings.get("max_size", DEFAULT_MAX_SIZE)))
+                      max_size=int(settings.get("max_size", DEFAULT_MAX_SIZE)),
+                      sharpness_discard=settings.get("sharpness_discard"))
 
 
 def workspace_scene(ws: Workspace, facts: SceneFacts | None = None) -> Scene:
@@ -128,6 +129,7 @@ class LoadAs:
     downscale: float = 1.0
     kind: str | None = None  # None: the dataset's, else detected from the camera layout
     max_size: int = DEFAULT_MAX_SIZE  # photos' long side is capped to this (0: full size)
+    sharpness_discard: float | None = None  # transforms JSONs: drop blurry frames (None: the file's own threshold)
 
 
 @dataclass
@@ -169,7 +171,8 @@ def _workspace_for(data: Path | None, workspace: str | Path | None, load_as: Loa
                              hint="pass another --workspace folder")
     ws.update_settings(scene=key, **({} if load_as is None else {"downscale": load_as.downscale,
                                                                   "kind": load_as.kind,
-                                                                  "max_size": load_as.max_size}))
+                                                                  "max_size": load_as.max_size,
+                                                                  "sharpness_discard": load_as.sharpness_discard}))
     return ws, data
 
 

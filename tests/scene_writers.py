@@ -104,3 +104,55 @@ def write_colmap(root: Path, c2w_gl: np.ndarray, model: str, params, w: int, h: 
     out = root / "sparse" / "0"
     out.mkdir(parents=True, exist_ok=True)
     rec.write_text(str(out)) if text else rec.write(str(out))
+
+
+def distort(img: np.ndarray, fx: float, fy: float, cx: float, cy: float, k1: float, k2: float, p1: float,
+            p2: float) -> np.ndarray:
+    """What an OpenCV-model lens (k1, k2, p1, p2) with these intrinsics shows of a pinhole image of the same ones."""
+    import pycolmap
+
+    h, w = img.shape[:2]
+    cam = pycolmap.Camera.create_from_model_name(1, "OPENCV", 1.0, w, h)
+    cam.params = [fx, fy, cx, cy, k1, k2, p1, p2]
+    vv, uu = np.mgrid[0:h, 0:w] + 0.5
+    xy = cam.cam_from_img(np.stack([uu.ravel(), vv.ravel()], 1))  # ideal normalised coordinates per pixel
+    mx = (xy[:, 0] * fx + cx - 0.5).reshape(h, w).astype(np.float32)
+    my = (xy[:, 1] * fy + cy - 0.5).reshape(h, w).astype(np.float32)
+    return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+def write_ngp_capture(scene_dir: Path, out: Path, missing=(), sharpness=None, extra: dict | None = None,
+                      gains=None, alpha: bool = True, lens: dict | None = None) -> dict:
+    """An instant-ngp style capture from a generated scene: one `transforms.json` listing its train and test
+    frames (file paths images/NNNN.png), with per-frame `sharpness` when given, the frames numbered in `missing`
+    listed without their image, `extra` top-level keys (e.g. aabb_scale) and per-frame RGB `gains` (exposure /
+    white balance) multiplied into the images' colour; `alpha=False` drops a transparent background's alpha (an
+opaque photo of the object on a plain background); `lens` {k1, k2, p1, p2} distorts the images as that lens
+would and writes the coefficients. Returns the JSON written."""
+    frames, meta = [], None
+    for split in ("train", "test"):
+        m = json.loads((Path(scene_dir) / f"transforms_{split}.json").read_text())
+        meta = meta or {k: m[k] for k in ("fl_x", "fl_y", "cx", "cy", "w", "h")}
+        for fr in m["frames"]:
+            frames.append((Path(scene_dir) / (fr["file_path"] + ".png"), fr["transform_matrix"]))
+    out_frames = []
+    for i, (src, pose) in enumerate(frames):
+        frame = {"file_path": f"images/{i:04d}.png", "transform_matrix": pose}
+        if sharpness is not None:
+            frame["sharpness"] = float(sharpness[i])
+        out_frames.append(frame)
+        if i in set(missing):
+            continue
+        img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+        img = img[..., :3] if not alpha else img
+        if gains is not None:
+            rgb = img[..., :3].astype(np.float32) * np.asarray(gains[i], np.float32) + 0.5
+            img = np.concatenate([np.clip(rgb, 0, 255).astype(np.uint8), img[..., 3:]], axis=-1)
+        if lens:
+            img = distort(img, meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], **lens)
+        write_image(out / "images" / f"{i:04d}.png", img)
+    data = {**meta, **(lens or {}), **(extra or {}), "frames": out_frames}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "transforms.json").write_text(json.dumps(data))
+    return data

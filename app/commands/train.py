@@ -13,6 +13,8 @@ HELP = "reconstruct a scene (stage 1) into a workspace; prints progress and the 
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from repaint_nerf.app.commands.info import add_sharpness_argument
+
     p.add_argument("scene", help="dataset or photo folder (NeRF-synthetic, nerfstudio, LLFF, COLMAP)")
     p.add_argument("--workspace", required=True, help="workspace folder (created if missing or empty)")
     budget = p.add_mutually_exclusive_group()
@@ -30,6 +32,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "size)")
     p.add_argument("--kind", default=None, choices=("bounded", "forward", "unbounded"),
                    help="scene kind (default: the dataset's, else detected from the camera layout)")
+    add_sharpness_argument(p)
+    p.add_argument("--appearance", action=argparse.BooleanOptionalAction, default=None,
+                   help="a per-image appearance code (exposure, white balance), as nerfacto's; held-out views and "
+                        "renders use the mean code (default: on for real captures, off for synthetic scenes)")
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
@@ -125,12 +131,15 @@ def run(args: argparse.Namespace) -> int:
         cfg.lr = args.lr
     if args.max_samples:
         cfg.max_samples = args.max_samples
+    if args.appearance is not None:
+        cfg.appearance = "on" if args.appearance else "off"
     teachers = Teachers(features=not args.no_features, depth=not args.no_depth,  # paper Eq. s1
                         feature_model=args.feature_model, feature_size=feature_size, feature_norm=args.feature_norm,
                         depth_model=args.depth_model)
 
     rec = start_reconstruction(scene_path, args.workspace, train_cfg=cfg, prefer_saved_config=False,
-                               teachers=teachers, load_as=LoadAs(args.downscale, args.kind, max_size), device=args.device,
+                               teachers=teachers, load_as=LoadAs(args.downscale, args.kind, max_size,
+                                                                args.sharpness_discard), device=args.device,
                                resume=args.resume, at_current_version=False)
     scene, trainer = rec.scene, rec.trainer
     for note in rec.notes:

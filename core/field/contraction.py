@@ -145,14 +145,22 @@ def ndc_spec(cams, near: float, far: float) -> dict:
     return spec
 
 
+def contract_extent(scene) -> float:
+    """How far (field units) a contracted scene's rays march: instant-ngp's `aabb_scale` when the dataset gives one
+    above 1 (its unit cube is the field cube: normalize.py), else CONTRACT_EXTENT."""
+    k = scene.extra.get("aabb_scale")
+    return float(k) if k is not None and k > 1 else CONTRACT_EXTENT
+
+
 def warp_spec(scene) -> dict | None:
     """The warp a scene's kind needs (a JSON-able spec for the field config), or None for bounded scenes
-    and for scenes whose dataset gives a box (`aabb`) around all content: the field cube already holds it."""
-    if scene.extra.get("aabb") is not None:
+    and for scenes whose dataset gives a box (`aabb`) around all content: the field cube already holds it
+    (unless `aabb_scale` says the content reaches beyond that box)."""
+    if scene.extra.get("aabb") is not None and scene.extra.get("unit_box") is None:
         return None
     kind = SCENE_WARPS.get(getattr(scene, "kind", "bounded"))
     if kind == "contract":
-        return {"kind": "contract", "extent": CONTRACT_EXTENT, "cone": CONE}
+        return {"kind": "contract", "extent": contract_extent(scene), "cone": CONE}
     if kind == "ndc":
         cams = scene.field_cameras("train")
         s = scene.norm.scale
@@ -160,3 +168,18 @@ def warp_spec(scene) -> dict | None:
         far = float(scene.far) * s if 0 < scene.far < 1e9 else 4.0
         return ndc_spec(cams, near, max(far, 2.0 * near))
     return None
+
+
+def warp_summary(scene) -> tuple[str, str]:
+    """(the warp `warp_spec` chooses, in words; why), for `info`."""
+    if scene.extra.get("aabb") is not None and scene.extra.get("unit_box") is None:
+        return "none", "the dataset's aabb bounds all content"
+    kind = SCENE_WARPS.get(getattr(scene, "kind", "bounded"))
+    if kind == "contract":
+        e = contract_extent(scene)
+        src = f"the reach aabb_scale {e:g} gives" if scene.extra.get("aabb_scale", 1) > 1 else "the default reach"
+        return (f"mip-NeRF 360 contraction beyond the field cube, rays marched to {e:g}x its half-size",
+                f"an {scene.kind} scene: far content keeps a place in the field; {src}")
+    if kind == "ndc":
+        return "NDC of a reference camera", "forward-facing scene: depth reaches to infinity in one direction"
+    return "none", "bounded scene: the field cube holds the content"

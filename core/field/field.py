@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from repaint_nerf.core.field.activations import density_activation
+from repaint_nerf.core.field.appearance import AppearanceCodes
 from repaint_nerf.core.field.contraction import make_warp
 from repaint_nerf.core.field.direction import sh_dim, sh_encode
 from repaint_nerf.core.field.encoding import HashGridEncoding
@@ -58,6 +59,8 @@ class FieldConfig:
     compile: bool = True  # $REPAINT_NERF_COMPILE=0 overrides to eager
     bound: float = _GRID.bound  # field cube half-size
     warp: dict | None = None  # unbounded / forward scenes: a core.field.contraction spec (None: bounded)
+    appearance_dim: int = 0  # per-image appearance code size (core.field.appearance; 0 = none)
+    appearance_count: int = 0  # training images with a code
 
     def grid_spec(self) -> GridSpec:
         return GridSpec(self.levels, self.features_per_level, self.log2_table, self.base_res, self.finest_res, self.bound)
@@ -101,7 +104,10 @@ class NGPField(nn.Module):
         # density trunk: encoding -> hidden -> [density pre-activation, geo features]
         self.trunk = nn.Linear(self.grid.out_dim, cfg.hidden)
         self.trunk_out = nn.Linear(cfg.hidden, 1 + cfg.geo_feat_dim)
-        self.color_net = _mlp(cfg.geo_feat_dim + sh_dim(cfg.sh_degree), cfg.hidden, 3, cfg.color_hidden_layers)
+        self.appearance = AppearanceCodes(cfg.appearance_count, cfg.appearance_dim) \
+            if cfg.appearance_dim > 0 and cfg.appearance_count > 0 else None
+        color_in = cfg.geo_feat_dim + sh_dim(cfg.sh_degree) + (cfg.appearance_dim if self.appearance else 0)
+        self.color_net = _mlp(color_in, cfg.hidden, 3, cfg.color_hidden_layers)
         self.act = density_activation(cfg.density_activation)
         self.feature_grid: HashGridEncoding | None = None
         self.feature_net: nn.Sequential | None = None
@@ -133,8 +139,10 @@ class NGPField(nn.Module):
         pre = F.linear(h, self.trunk_out.weight[:1], self.trunk_out.bias[:1])[:, 0]
         return self.act(pre) * self.inside(x).to(pre.dtype)
 
-    def forward(self, x: Tensor, d: Tensor | None = None, outputs=("rgb",)) -> dict[str, Tensor]:
-        """Evaluate at points x (N, 3) seen along directions d (N, 3): 'sigma' always, 'rgb'/'feature' when asked."""
+    def forward(self, x: Tensor, d: Tensor | None = None, outputs=("rgb",),
+                appearance: Tensor | None = None) -> dict[str, Tensor]:
+        """Evaluate at points x (N, 3) seen along directions d (N, 3): 'sigma' always, 'rgb'/'feature' when asked.
+        `appearance` (N,) picks each point's image code (fields with codes; None: the mean code)."""
         from repaint_nerf.core.errors import UserError
 
         unknown = set(outputs) - set(OUTPUTS)
@@ -148,8 +156,10 @@ class NGPField(nn.Module):
         if "rgb" in outputs:
             if d is None:
                 raise UserError("the field needs view directions to compute 'rgb'", hint="pass d (N, 3)")
-            geo = out_t[:, 1:]
-            result["rgb"] = torch.sigmoid(self.color_net(torch.cat([geo, sh_encode(d, self.cfg.sh_degree)], -1)))
+            parts = [out_t[:, 1:], sh_encode(d, self.cfg.sh_degree)]
+            if self.appearance is not None:
+                parts.append(self.appearance(appearance, x.shape[0]).to(out_t.dtype))
+            result["rgb"] = torch.sigmoid(self.color_net(torch.cat(parts, -1)))
         if "feature" in outputs:
             if self.feature_net is None:
                 raise UserError("this field has no feature head", hint="set feature_dim > 0 in the field config")
@@ -165,6 +175,8 @@ class NGPField(nn.Module):
         if self.feature_net is not None:
             feature += list(self.feature_net.parameters())
         mlp = [*self.trunk.parameters(), *self.trunk_out.parameters(), *self.color_net.parameters()]
+        if self.appearance is not None:
+            mlp += list(self.appearance.parameters())
         return {"grid": list(self.grid.parameters()), "mlp": mlp, "feature": feature}
 
 

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from repaint_nerf.core.device import synchronize
 from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.field.appearance import with_ray_appearance
 from repaint_nerf.core.render import march_native
 from repaint_nerf.core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
 from repaint_nerf.core.render.box import cube
@@ -52,6 +53,9 @@ class RenderOptions:
     # training only: evaluate every candidate with grad in one pass, without the density-only pass that drops
     # those behind T < t_threshold. For a foggy field that pass keeps them all: it is work that need not be there
     one_pass: bool = False
+    # per ray: the training image it comes from (R,) long, for fields with appearance codes (core.field.appearance);
+    # None: the mean code
+    appearance: Tensor | None = None
 
 
 @dataclass
@@ -129,7 +133,7 @@ def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, di
     """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked."""
     if not heads:
         return field.density(s.x).reshape(-1), {}
-    out = field(s.x, dirs[s.ray], outputs=heads)
+    out = field(s.x, dirs[s.ray], outputs=heads, **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
     return out["sigma"].reshape(-1), {h: out[h] for h in heads}
 
 
@@ -254,7 +258,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
             plan = plan_rays(o, d, lo, hi, step, cap, opts.near, cone)
         acc.stats["marched"] += int(plan_rays(o, d, *cube(extent, dev), step, cap, opts.near,
                                               cone).n_steps.sum())
-        out = _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, cancel)
+        fld = with_ray_appearance(field, opts.appearance, b0, block)
+        out = _render_block(fld, grid, o, d, plan, heads, opts, strategy, acc, dev, cancel)
         if out is None:
             return None
         pieces.append(out)

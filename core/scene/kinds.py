@@ -5,7 +5,10 @@
   the camera ring: the field cube holds everything.
 - unbounded: cameras surround a centre but much of the content lies beyond them (a room, an outdoor
   360 capture): the mip-NeRF 360 contraction (core.field.contraction).
-A loader's or the user's choice overrides it (`load_scene(kind=...)`, `--kind`).
+Without sparse points the dataset's own word decides first (instant-ngp's `aabb_scale`, a nerfstudio scene box:
+loaders/reach.py), then a known far depth, then, for opaque images, a quick probe that triangulates a few image
+pairs with the known poses (core.scene.probe). A loader's or the user's choice overrides it
+(`load_scene(kind=...)`, `--kind`).
 """
 from __future__ import annotations
 
@@ -31,8 +34,9 @@ def view_spread_deg(c2w: np.ndarray) -> float:
 
 
 def kind_from_layout(c2w: np.ndarray, points: np.ndarray | None = None,
-                     far_depth: float | None = None) -> tuple[str, str]:
-    """(kind, reason) from camera-to-world poses (N,4,4, OpenGL), optional world points or far z-depth."""
+                     far_depth: float | None = None, what: str = "the sparse points") -> tuple[str, str]:
+    """(kind, reason) from camera-to-world poses (N,4,4, OpenGL), optional world points (`what` names them in
+    the reason) or far z-depth."""
     c2w = np.asarray(c2w, dtype=np.float64)
     spread = view_spread_deg(c2w)
     if spread <= FORWARD_MAX_ANGLE:
@@ -46,19 +50,60 @@ def kind_from_layout(c2w: np.ndarray, points: np.ndarray | None = None,
         dist = np.linalg.norm(np.asarray(points, dtype=np.float64) - centre, axis=1)
         beyond = float(np.mean(dist > r_cam))
         if beyond > BEYOND_FRACTION:
-            return "unbounded", f"{beyond:.0%} of the sparse points lie beyond the cameras"
-        return "bounded", f"cameras surround the content ({beyond:.0%} of the points beyond them)"
+            return "unbounded", f"{beyond:.0%} of {what} lie beyond the cameras"
+        return "bounded", f"cameras surround the content ({beyond:.0%} of {what} beyond them)"
     if far_depth is not None and far_depth > FAR_RATIO * r_cam:
         return "unbounded", f"surfaces up to {far_depth / r_cam:.1f}x the camera distance away"
     return "bounded", "cameras surround a centre"
 
 
+def reach_kind(extra: dict) -> tuple[str, str] | None:
+    """(kind, reason) from what the dataset says about its content's reach (loaders/reach.py), else None."""
+    k = extra.get("aabb_scale")
+    if k is not None and k > 1:
+        return "unbounded", f"aabb_scale {k:g}: the content reaches {k:g}x instant-ngp's unit cube"
+    if k is not None:
+        return "bounded", "aabb_scale 1: instant-ngp keeps all content inside its unit cube"
+    if extra.get("unit_box") is not None:
+        return "unbounded", "a nerfstudio scene box: nerfacto contracts what lies beyond it"
+    return None
+
+
+def _opaque(scene) -> bool:
+    """Whether the training images have no transparent pixels (a capture, not an object cut out on alpha)."""
+    for im in scene.train.images[:4]:
+        if im.ndim == 3 and im.shape[2] == 4 and int(np.asarray(im)[..., 3].min()) < 255:
+            return False
+    return True
+
+
+def probe_kind(scene, c2w: np.ndarray) -> tuple[str, str] | None:
+    """(kind, reason) from points a quick probe triangulates (core.scene.probe), or None when it finds too few."""
+    from repaint_nerf.core.scene.probe import MIN_POINTS, probe_points
+
+    pts = probe_points(scene.train)
+    scene.extra["probe_points"] = int(len(pts))
+    if len(pts) < MIN_POINTS:
+        return None
+    kind, why = kind_from_layout(c2w, pts, what=f"{len(pts)} points a quick probe triangulated")
+    return kind, why
+
+
 def detect_kind(scene) -> tuple[str, str]:
-    """(kind, reason) for a `Scene` from all its cameras, its points and any known depth range."""
+    """(kind, reason) for a `Scene` from its dataset's reach, all its cameras, its points, any known depth range,
+    and else (opaque images, cameras around a centre) a quick probe of its images."""
+    extra = scene.extra if isinstance(scene.extra, dict) else {}
+    given = reach_kind(extra)
+    if given is not None:
+        return given
     c2w = np.concatenate([s.cameras.c2w.double().numpy() for s in scene.splits.values()])
-    depth_range = scene.extra.get("depth_range") if isinstance(scene.extra, dict) else None
+    depth_range = extra.get("depth_range")
     far = float(np.max(depth_range)) if depth_range is not None else None
-    return kind_from_layout(c2w, scene.points, far)
+    kind, why = kind_from_layout(c2w, scene.points, far)
+    no_points = scene.points is None or len(scene.points) < 8
+    if kind == "bounded" and no_points and far is None and "train" in scene.splits and _opaque(scene):
+        return probe_kind(scene, c2w) or (kind, why + "; a quick probe of the images found too few points to tell")
+    return kind, why
 
 
 def choose_kind(scene, override: str | None = None) -> str:

@@ -1,6 +1,7 @@
 """The one place that maps a scene into field space [-1, 1]^3 (a similarity: shift and uniform scale).
 
-Rules, first that applies: an `aabb` from the dataset; for forward-facing captures the region between
+Rules, first that applies: a unit box from the dataset (instant-ngp's unit cube with `aabb_scale`, nerfstudio's
+scene box: loaders/reach.py; the content may reach beyond it, contraction.warp_spec); an `aabb` from the dataset; for forward-facing captures the region between
 near and far that the cameras see; a robust box (1st-99th percentile) of the sparse points; for
 object-centric cameras the point nearest all optical axes with a radius from distance and field of view.
 """
@@ -93,8 +94,11 @@ def normalize_scene(scene: Scene) -> Normalization:
     """Choose and record `scene.norm` (world -> field); fills near/far (world units) when the loader did not."""
     cams = _all_cameras(scene)
     aabb = scene.extra.get("aabb")
+    unit_box = scene.extra.get("unit_box")
     points = scene.points if scene.points is not None and len(scene.points) >= 8 else None
-    if aabb is not None:
+    if unit_box is not None:
+        rule, (lo, hi) = "unit_box", np.asarray(unit_box, dtype=np.float64)
+    elif aabb is not None:
         rule, (lo, hi) = "aabb", np.asarray(aabb, dtype=np.float64)
     elif scene.kind == "forward":
         bounds = scene.extra.get("bounds", scene.extra.get("depth_range"))

@@ -90,6 +90,9 @@ class TrainConfig:
     reopen_fraction: float = 0.01  # at most this fraction of the batch's rays
     reopen_error: float = 0.04  # only rays whose mean squared colour error is above this (0 = off)
     scene_warp: bool = True  # forward / unbounded scenes: NDC / contraction (core.field.contraction)
+    # per-image appearance codes (core.field.appearance): auto = on for captures, off for rendered scenes; on; off
+    appearance: str = "auto"
+    appearance_dim: int = 0  # code size; 0 = APPEARANCE_DIM
     seed: int = 0
     checkpoint_every_s: float = 0.0  # periodic checkpoints during `train` (0 = only when asked)
 
@@ -123,6 +126,18 @@ def warped_config(scene, device: torch.device | None, image_size: int):
 
     spec = warp_spec(scene)
     return None if spec is None else dataclasses.replace(default_config(device, image_size), warp=spec)
+
+
+def with_appearance(field_cfg, scene, cfg: TrainConfig, device: torch.device | None, image_size: int):
+    """A fresh field's config with the appearance codes `cfg` asks for on this scene (one per training image);
+    `field_cfg` itself (None: the default) when it asks for none."""
+    from repaint_nerf.core.field.appearance import APPEARANCE_DIM, appearance_default
+
+    if not appearance_default(scene, cfg.appearance)[0]:
+        return field_cfg
+    base = field_cfg if field_cfg is not None else default_config(device, image_size)
+    return dataclasses.replace(base, appearance_dim=cfg.appearance_dim or APPEARANCE_DIM,
+                               appearance_count=len(scene.train))
 
 
 def grid_resolution_for(device: torch.device) -> int:
@@ -230,8 +245,10 @@ class Stage1Trainer:
             self.cfg = dataclasses.replace(self.cfg, grid_resolution=grid_resolution_for(self.device))
 
         self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
-        if field_cfg is None and self.cfg.scene_warp:
-            field_cfg = warped_config(scene, self.device, int(max(ws.max(), hs.max())))
+        if field_cfg is None:  # a fresh field (a resumed one keeps its saved config)
+            side = int(max(ws.max(), hs.max()))
+            field_cfg = with_appearance(warped_config(scene, self.device, side) if self.cfg.scene_warp else None,
+                                        scene, self.cfg, self.device, side)
         if self.features is not None and field_cfg is not None and getattr(field_cfg, "feature_dim", 0) != self.feature_dim:
             field_cfg = dataclasses.replace(field_cfg, feature_dim=self.feature_dim)
         self.field, self.field_cfg = make_field(field_cfg, self.device, int(max(ws.max(), hs.max())))
@@ -384,7 +401,7 @@ class Stage1Trainer:
         if self.has_alpha:
             a = px[:, 3:4]
             rgb = rgb * a + bg * (1.0 - a)
-        batch = {"origins": origins, "dirs": dirs, "dz": dz, "rgb": rgb, "background": bg}
+        batch = {"origins": origins, "dirs": dirs, "dz": dz, "rgb": rgb, "background": bg, "image": img}
         if self.features is not None:
             fidx = self.feat_offsets[img] + _resample_index(u, v, self.widths[img], self.heights[img],
                                                             self.feat_w[img], self.feat_h[img])
@@ -440,7 +457,7 @@ class Stage1Trainer:
         one_pass = self.filter_kept >= self.cfg.one_pass_kept and self.step_count % every != 0
         opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
-                             one_pass=one_pass)
+                             one_pass=one_pass, appearance=batch["image"])
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
         stats = out.get("stats") or {}
         if not one_pass and stats.get("density_samples"):

@@ -17,6 +17,14 @@ TEST_EVERY = 8  # LLFF convention: images 0, 8, 16, ... are the test split
 DEFAULT_MAX_SIZE = 512
 
 
+def as_float(value) -> float:
+    """`value` as a float; NaN when it is not a number (the caller's finiteness check then names the key)."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def check_downscale(downscale: float) -> float:
     """Validate a --downscale factor (> 0; 2 halves width and height)."""
     try:

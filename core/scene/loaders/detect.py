@@ -14,6 +14,7 @@ from repaint_nerf.core.errors import SceneError, UserError
 from repaint_nerf.core.scene.loaders.blender import is_blender, load_blender
 from repaint_nerf.core.scene.loaders.colmap import find_model, load_colmap
 from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE, check_downscale, check_max_size
+from repaint_nerf.core.scene.loaders.frame_select import check_sharpness_discard
 from repaint_nerf.core.scene.loaders.images import list_images
 from repaint_nerf.core.scene.loaders.llff import load_llff
 from repaint_nerf.core.scene.loaders.nerfstudio import load_nerfstudio
@@ -85,7 +86,8 @@ LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_
 
 
 def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None,
-               workspace: str | Path | None = None, max_size: int = DEFAULT_MAX_SIZE) -> Scene:
+               workspace: str | Path | None = None, max_size: int = DEFAULT_MAX_SIZE,
+               sharpness_discard: float | None = None) -> Scene:
     """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
 
     `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind, which
@@ -93,7 +95,8 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     camera layout (`core.scene.kinds`); `splits` restricts which splits' images are read;
     `workspace` is where structure-from-motion on a photo folder caches its result; images whose longest
     side exceeds `max_size` after `downscale` are loaded smaller to fit it (0 = full size), with their
-    intrinsics scaled alike.
+    intrinsics scaled alike; `sharpness_discard` drops blurry frames of transforms JSONs as instant-ngp's
+    `sharpness_discard_threshold` does (None: the file's own threshold, else none; loaders/frame_select.py).
     """
     downscale = check_downscale(downscale)
     max_size = check_max_size(max_size)
@@ -102,6 +105,9 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     splits = None if splits is None else ((splits,) if isinstance(splits, str) else tuple(splits))
     fmt, root = detect_format(path)
     extra_args = {"workspace": workspace} if fmt == "photos" else {}
+    if fmt in ("blender", "nerfstudio"):
+        extra_args["sharpness_discard"] = None if sharpness_discard is None else check_sharpness_discard(
+            sharpness_discard)
     scene = LOADERS[fmt](root, downscale=downscale, splits=splits, max_size=max_size, **extra_args)
     if not scene.splits or sum(len(s) for s in scene.splits.values()) == 0:
         raise SceneError(f"no images loaded (requested splits: {', '.join(splits or ('all',))})", root)

@@ -14,8 +14,18 @@ def _depth_gt(scene: Scene) -> dict:
     return {"present": bool(files), "folder": str(gt) if files else None, "files": len(files)}
 
 
+def _skipped(scene: Scene) -> dict | None:
+    """Frames the loader skipped (loaders/frame_select.py), when it skipped any."""
+    rep = scene.extra.get("skipped")
+    return rep if rep and (rep["missing"] or rep["blurry"]) else None
+
+
 def scene_summary(scene: Scene) -> dict:
-    """Format, splits with image counts and sizes, intrinsics, bounds (world) and normalisation, extras."""
+    """Format, splits with image counts and sizes, frames skipped, intrinsics, bounds (world) and normalisation,
+    the space warp and why, extras."""
+    from repaint_nerf.core.field.appearance import appearance_default
+    from repaint_nerf.core.field.contraction import warp_summary
+
     splits = {}
     for name, sp in scene.splits.items():
         sizes = sorted({(int(w), int(h)) for w, h in zip(sp.cameras.width.tolist(), sp.cameras.height.tolist())})
@@ -26,18 +36,23 @@ def scene_summary(scene: Scene) -> dict:
     half = 1.0 / scene.norm.scale
     norm = dict(scene.extra.get("normalization", {}))
     alpha = any(im.ndim == 3 and im.shape[2] == 4 for sp in scene.splits.values() for im in sp.images[:1])
+    warp, warp_reason = warp_summary(scene)
+    appearance, appearance_reason = appearance_default(scene)
     return {
         "path": str(scene.root),
         "format": scene.format,
         "kind": scene.kind,
         "kind_reason": scene.extra.get("kind_reason", "given by the dataset or --kind"),
-        "warp": "none (an aabb bounds the content)" if scene.extra.get("aabb") is not None or scene.kind == "bounded"
-        else {"forward": "NDC of a reference camera", "unbounded": "mip-NeRF 360 contraction"}[scene.kind],
+        "warp": warp,
+        "warp_reason": warp_reason,
+        "skipped": _skipped(scene),
+        "aabb_scale": scene.extra.get("aabb_scale"),
         "downscale": float(scene.extra.get("downscale", 1.0)),
         "splits": splits,
         "intrinsics": {"fx": float(first.fx[0]), "fy": float(first.fy[0]), "cx": float(first.cx[0]),
                        "cy": float(first.cy[0]), "vary": bool(np.ptp(intr, axis=0).max() > 1e-4)},
         "bounds_world": {"region": norm.get("box"), "rule": norm.get("rule"),
+                         "source": scene.extra.get("unit_box_from"),
                          "field_cube": [[float(c - half) for c in scene.norm.center],
                                         [float(c + half) for c in scene.norm.center]]},
         "normalization": scene.norm.to_dict(),
@@ -48,6 +63,7 @@ def scene_summary(scene: Scene) -> dict:
         "points": 0 if scene.points is None else int(len(scene.points)),
         "depth_gt": _depth_gt(scene),
         "camera_models": scene.extra.get("camera_models"),
+        "appearance": {"codes": appearance, "reason": appearance_reason},
     }
 
 
@@ -56,13 +72,21 @@ def format_summary(info: dict) -> str:
     f = lambda v: f"{v:.6g}"  # noqa: E731
     lines = [f"path            {info['path']}", f"format          {info['format']}",
              f"kind            {info['kind']} ({info['kind_reason']})",
-             f"space warp      {info['warp']}"]
+             f"space warp      {info['warp']} ({info['warp_reason']})"]
     if info["downscale"] != 1.0:
         lines.append(f"downscale       {f(info['downscale'])}")
     for name, sp in info["splits"].items():
         size = sp["size"]
         size_s = f"{size[0]}x{size[1]}" if isinstance(size[0], int) else ", ".join(f"{w}x{h}" for w, h in size)
         lines.append(f"split {name:<9} {sp['images']} images, {size_s}")
+    sk = info.get("skipped")
+    if sk:
+        ex = sk["examples"]
+        if sk["missing"]:
+            lines.append(f"skipped         {sk['missing']} frame(s) whose image is missing (e.g. {ex['missing'][0]})")
+        if sk["blurry"]:
+            lines.append(f"skipped         {sk['blurry']} blurry frame(s) (sharpness below {sk['threshold']:g}x their "
+                         f"neighbours' mean)")
     k = info["intrinsics"]
     lines.append(f"intrinsics      fx={f(k['fx'])} fy={f(k['fy'])} cx={f(k['cx'])} cy={f(k['cy'])} "
                  f"(first image; {'vary per image' if k['vary'] else 'same for all images'})")
@@ -71,8 +95,9 @@ def format_summary(info: dict) -> str:
     b = info["bounds_world"]
     if b["region"]:
         lo, hi = b["region"]
+        src = b.get("source") if b["rule"] == "unit_box" else b["rule"]
         lines.append(f"scene bounds    [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] "
-                     f"(world, from {b['rule']})")
+                     f"(world, from {src})")
     lo, hi = b["field_cube"]
     n = info["normalization"]
     lines.append(f"field cube      [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world)")
@@ -89,4 +114,7 @@ def format_summary(info: dict) -> str:
     d = info["depth_gt"]
     depth = f"yes, {d['files']} files in {d['folder']}" if d["present"] else "none"
     lines.append(f"depth gt        {depth}")
+    a = info["appearance"]
+    lines.append(f"appearance      {'a code per training image' if a['codes'] else 'none'} by default ({a['reason']}; "
+                 f"train --appearance / --no-appearance)")
     return "\n".join(lines)

@@ -14,7 +14,7 @@ import numpy as np
 
 from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.cameras import Cameras
-from repaint_nerf.core.scene.loaders.common import check_pose, load_split
+from repaint_nerf.core.scene.loaders.common import as_float, check_pose, load_split
 from repaint_nerf.core.scene.loaders.images import IMAGE_EXTS, image_size, read_image
 from repaint_nerf.core.scene.loaders.undistort import make_camera, needs_undistortion, undistort_image, undistorted_camera
 from repaint_nerf.core.scene.scene import SceneSplit
@@ -64,8 +64,9 @@ def frame_pose(frame: dict, path: Path, i: int) -> np.ndarray:
     return check_pose(m, path, f"frame {i} ('{frame.get('file_path')}')")
 
 
-def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
-    """The image file a frame names, relative to the JSON's folder, with or without an extension."""
+def find_image(root: Path, file_path: str, path: Path, i: int) -> Path | None:
+    """The image file a frame names, relative to the JSON's folder, with or without an extension; None when
+    it is not there (a path leaving the dataset folder is a `SceneError`)."""
     rel = str(file_path).replace("\\", "/")
     p = (root / rel).resolve()
     if Path(rel).is_absolute() or not p.is_relative_to(root.resolve()):
@@ -77,6 +78,15 @@ def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
         q = p.with_name(p.name + ext)
         if q.is_file():
             return q
+    return None
+
+
+def resolve_image(root: Path, file_path: str, path: Path, i: int) -> Path:
+    """`find_image`, with a missing image a `SceneError`."""
+    found = find_image(root, file_path, path, i)
+    if found is not None:
+        return found
+    p = (root / str(file_path).replace("\\", "/")).resolve()
     raise SceneError(f"frame {i}: image '{file_path}' not found (looked for {p} with and without an extension)",
                      path, hint="check file_path or add the missing image")
 
@@ -92,10 +102,7 @@ def _number(meta: dict, frame: dict, key: str, path: Path, i: int):
     value = frame.get(key, meta.get(key))
     if value is None:
         return None
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        v = float("nan")
+    v = as_float(value)
     if not math.isfinite(v):
         raise SceneError(f"frame {i}: '{key}' is not a finite number ({value!r})", path)
     return v
@@ -147,11 +154,12 @@ def frame_intrinsics(meta: dict, frame: dict, path: Path, i: int, image_size: tu
 
 
 def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path: Path, downscale: float,
-                same_size: bool, max_size: int = 0) -> SceneSplit:
+                same_size: bool, max_size: int = 0, models: set | None = None) -> SceneSplit:
     """Build one split from frames `idx` of a transforms file: validated poses, intrinsics, images.
 
     `same_size` (Blender) makes images of different sizes within the split a `SceneError`. Sizes come
     from the file headers; pixels are decoded one image at a time (full-size images are never all held).
+    `models`, when given, collects the names of the lens models undistorted (for `info`).
     """
     paths = [resolve_image(root, frames[i]["file_path"], path, i) for i in idx]
     poses = [frame_pose(frames[i], path, i) for i in idx]
@@ -167,6 +175,8 @@ def load_frames(meta: dict, frames: list[dict], idx: list[int], root: Path, path
         cam, pin = frame_intrinsics(meta, frames[i], path, i, sizes[k])
         cams.append(cam)
         pins.append(pin)
+        if models is not None and needs_undistortion(cam):
+            models.add(cam.model_name)
     pin = np.asarray(pins, dtype=np.float64)
     cameras = Cameras.create(np.stack(poses), pin[:, 0], pin[:, 1], pin[:, 2], pin[:, 3], pin[:, 4], pin[:, 5])
 
