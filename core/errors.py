@@ -30,3 +30,16 @@ class ModelNotFoundError(UserError):
 
 class WorkspaceError(UserError):
     """A workspace folder or file that is missing, corrupt or of another format version."""
+
+
+class WorkspaceDamaged(WorkspaceError):
+    """A workspace file whose content is not what was written (truncated, altered, missing, foreign): `repair`
+    can set it aside and rebuild what depends on it. `workspace` is the folder to repair (None when unknown)."""
+
+    def __init__(self, message: str, path: str | Path | None = None, workspace: str | Path | None = None,
+                 hint: str | None = None):
+        self.workspace = None if workspace is None else Path(workspace)
+        if hint is None and self.workspace is not None:
+            hint = (f"run: repaint-nerf repair {self.workspace} (it sets damaged files aside and keeps every "
+                    "good version)")
+        super().__init__(message, path, hint)

@@ -70,13 +70,24 @@ def write_json(path: str | Path, obj: Any) -> None:
         f.write(text + "\n")
 
 
-def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] | None = None) -> None:
-    """Atomically write torch tensors (moved to CPU, made contiguous) as a safetensors file."""
+def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] | None = None) -> str:
+    """Atomically write torch tensors (moved to CPU, made contiguous) as a sealed safetensors file (its content
+    hash inside, core.workspace.integrity); returns that hash."""
     from safetensors.torch import save_file
+
+    from repaint_nerf.core.workspace import integrity
 
     cpu = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     with atomic_path(path) as tmp:
-        save_file(cpu, str(tmp), metadata=metadata)
+        save_file(cpu, str(tmp), metadata=integrity.sealed_metadata(metadata))
+        return integrity.seal_file(tmp)
+
+
+def write_sealed(path: str | Path, data: bytes) -> None:
+    """Atomically write safetensors bytes made with `integrity.sealed_metadata`, sealed (e.g. a teacher cache)."""
+    from repaint_nerf.core.workspace import integrity
+
+    write_bytes(path, integrity.seal_bytes(data))
 
 
 def sweep_stale_temps(folder: str | Path, older_than_s: float = 300.0) -> list[Path]:

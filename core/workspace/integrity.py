@@ -1,0 +1,181 @@
+"""Content hashes that make every workspace file checkable (the way safetensors checks a header before any
+tensor, and git names objects by their hash).
+
+A safetensors file is *sealed*: its metadata holds `SEAL_KEY`, the SHA-256 of the whole file with that value
+written as 64 zeros, so the file checks itself with no index (the digest is patched into place in the
+temporary file before the atomic rename). A JSON file (the version index, a selection, the masks index) is
+sealed by a `"sha256"` field: the hash of its other fields in canonical form. Files written before the seals
+existed carry none: they read as before (`None` from the checks), and only a seal that does not match is
+damage.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from pathlib import Path
+from typing import Any, BinaryIO
+
+SEAL_KEY = "repaint_nerf_sha256"
+JSON_SEAL = "sha256"
+STAMP_KEY = "repaint_nerf_version"  # a workspace version's identity (core.workspace.workspace.save_version)
+_BLANK = b"0" * 64
+_NEEDLE = f'"{SEAL_KEY}":"'.encode()
+_MAX_HEADER = 100 * 2**20  # safetensors' own limit on the JSON header
+_CHUNK = 2**20
+
+
+class IntegrityError(Exception):
+    """A file whose bytes are not the ones written: empty, truncated, altered, or not a sealed file at all."""
+
+
+def sealed_metadata(metadata: dict[str, str] | None = None) -> dict[str, str]:
+    """`metadata` plus a blank seal, for a safetensors writer whose output `seal_file` / `seal_bytes` then seals."""
+    return {**(metadata or {}), SEAL_KEY: _BLANK.decode()}
+
+
+def _read_header(f: BinaryIO) -> bytes:
+    """The 8-byte length and the JSON header of a safetensors file (IntegrityError when they are not there)."""
+    head = f.read(8)
+    if not head:
+        raise IntegrityError("the file is empty")
+    if len(head) < 8:
+        raise IntegrityError("the file is truncated (no complete header)")
+    (n,) = struct.unpack("<Q", head)
+    if n > _MAX_HEADER:
+        raise IntegrityError("the file is not a safetensors file (its header length is impossible)")
+    body = f.read(n)
+    if len(body) < n:
+        raise IntegrityError("the file is truncated (inside its header)")
+    return head + body
+
+
+def _seal_at(header: bytes) -> int | None:
+    """Offset of the 64 hex digits of the seal in the file, or None for an unsealed file."""
+    i = header.find(_NEEDLE)
+    return None if i < 0 else i + len(_NEEDLE)
+
+
+def _digest(header: bytes, at: int, rest: BinaryIO | bytes) -> str:
+    """SHA-256 of the header with the seal blanked, then of `rest` (a file read to its end, or bytes)."""
+    h = hashlib.sha256(header[:at])
+    h.update(_BLANK)
+    h.update(header[at + 64:])
+    if isinstance(rest, (bytes, bytearray, memoryview)):
+        h.update(rest)
+    else:
+        buf = bytearray(_CHUNK)
+        view = memoryview(buf)
+        while n := rest.readinto(buf):
+            h.update(view[:n])
+    return h.hexdigest()
+
+
+def seal_file(path: str | Path) -> str:
+    """Write the seal of a safetensors file written with `sealed_metadata` into it; returns the digest."""
+    with open(path, "r+b") as f:
+        header = _read_header(f)
+        at = _seal_at(header)
+        if at is None:
+            raise ValueError(f"{path} was not written with sealed_metadata()")
+        digest = _digest(header, at, f)
+        f.seek(at)
+        f.write(digest.encode())
+    return digest
+
+
+def seal_bytes(data: bytes) -> bytes:
+    """The sealed form of a safetensors file's bytes written with `sealed_metadata` (e.g. by safetensors' `save`)."""
+    from io import BytesIO
+
+    header = _read_header(BytesIO(data))
+    at = _seal_at(header)
+    if at is None:
+        raise ValueError("these bytes were not written with sealed_metadata()")
+    digest = _digest(header, at, memoryview(data)[len(header):])
+    return data[:at] + digest.encode() + data[at + 64:]
+
+
+def stored_digest(path: str | Path) -> str | None:
+    """The seal a safetensors file says it has (its header only: microseconds); None when it has none."""
+    with open(path, "rb") as f:
+        header = _read_header(f)
+    at = _seal_at(header)
+    return None if at is None else header[at:at + 64].decode("ascii", "replace")
+
+
+def verify_file(path: str | Path) -> str | None:
+    """Hash the whole file and compare with its seal: the digest when it matches, None for an unsealed (older)
+    file; an IntegrityError saying what is wrong otherwise. Costs one read at ~1.5 GB/s (SHA-256)."""
+    with open(path, "rb") as f:
+        header = _read_header(f)
+        at = _seal_at(header)
+        if at is None:
+            return None
+        stored = header[at:at + 64].decode("ascii", "replace")
+        actual = _digest(header, at, f)
+    if actual != stored:
+        raise IntegrityError("its content hash does not match (the file is truncated or altered)")
+    return stored
+
+
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The `__metadata__` of a safetensors file, from its header only (IntegrityError when unreadable)."""
+    with open(path, "rb") as f:
+        header = _read_header(f)
+    try:
+        meta = json.loads(header[8:]).get("__metadata__") or {}
+    except (ValueError, AttributeError) as exc:
+        raise IntegrityError("its header is not valid JSON") from exc
+    return meta if isinstance(meta, dict) else {}
+
+
+def read_stamp(path: str | Path) -> dict[str, Any] | None:
+    """The version identity stamped into a workspace version file (None for a file without one)."""
+    raw = read_metadata(path).get(STAMP_KEY)
+    if raw is None:
+        return None
+    try:
+        stamp = json.loads(raw)
+    except ValueError as exc:
+        raise IntegrityError("its version stamp is not valid JSON") from exc
+    return stamp if isinstance(stamp, dict) else None
+
+
+def json_digest(obj: dict) -> str:
+    """SHA-256 of a JSON object without its seal field, in canonical form (sorted keys, no spaces)."""
+    body = {k: v for k, v in obj.items() if k != JSON_SEAL}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+
+
+def seal_json(obj: dict) -> dict:
+    """`obj` with its seal field set (write the result; `check_json` verifies it when read back)."""
+    return {**{k: v for k, v in obj.items() if k != JSON_SEAL}, JSON_SEAL: json_digest(obj)}
+
+
+def check_json(obj: Any) -> bool | None:
+    """Whether a parsed JSON object matches its seal; None when it carries none (an older file)."""
+    if not isinstance(obj, dict) or JSON_SEAL not in obj:
+        return None
+    return obj[JSON_SEAL] == json_digest(obj)
+
+
+def bytes_digest(data: bytes) -> str:
+    """SHA-256 of raw bytes (a mask PNG's entry in the masks index)."""
+    return hashlib.sha256(data).hexdigest()
+
+
+def workspace_of(path: str | Path) -> Path | None:
+    """The workspace folder holding `path` (the nearest parent with workspace.json), or None."""
+    for parent in Path(path).resolve().parents:
+        if (parent / "workspace.json").is_file():
+            return parent
+    return None
+
+
+def repair_hint(path: str | Path, otherwise: str | None = None) -> str | None:
+    """'run: repaint-nerf repair WS' for a file inside a workspace; `otherwise` for a file outside one."""
+    ws = workspace_of(path)
+    if ws is None:
+        return otherwise
+    return f"run: repaint-nerf repair {ws} (it sets damaged files aside and keeps every good version)"
