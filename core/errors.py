@@ -43,3 +43,21 @@ class WorkspaceDamaged(WorkspaceError):
             hint = (f"run: repaint-nerf repair {self.workspace} (it sets damaged files aside and keeps every "
                     "good version)")
         super().__init__(message, path, hint)
+
+
+class SaveFailed(WorkspaceError, OSError):
+    """A save the file system refused (a full disk, a read-only folder): the previous file is unchanged. Also an
+    OSError with the original `errno`, so callers that handled the raw error still do."""
+
+    def __init__(self, path: str | Path, exc: OSError):
+        import errno as codes
+
+        why = {codes.ENOSPC: ("the disk is full", "free some space, or save to a folder on another disk"),
+               codes.EDQUOT: ("the disk quota is used up", "free some space, or save to a folder on another disk"),
+               codes.EROFS: ("the folder is on a read-only file system", "save to a folder you can write to"),
+               codes.EACCES: ("the folder is not writable", "make it writable, or save to another folder"),
+               codes.EPERM: ("the folder is not writable", "make it writable, or save to another folder")}
+        what, hint = why.get(exc.errno, (exc.strerror or str(exc), "check the folder and the disk, then save again"))
+        super().__init__(f"cannot save this file: {what} ({exc.strerror or exc})", path,
+                         hint=f"{hint}; the previous version of the file is unchanged")
+        self.errno, self.strerror, self.filename = exc.errno, exc.strerror, str(path)

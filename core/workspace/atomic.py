@@ -28,10 +28,16 @@ def _fsync_dir(folder: Path) -> None:
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside `path`; on a clean exit it replaces `path`, on an error it is removed."""
+    """Yield a temporary path beside `path`; on a clean exit it replaces `path`, on an error it is removed (a
+    refusal by the file system, e.g. a full disk, is raised as a SaveFailed naming `path` and the cause)."""
+    from repaint_nerf.core.errors import SaveFailed
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise SaveFailed(path, exc) from exc
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -39,9 +45,11 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(exc, OSError) and not isinstance(exc, SaveFailed) and exc.errno is not None:
+            raise SaveFailed(path, exc) from exc  # a full disk or read-only folder says so, not a bare errno
         raise
     _fsync_dir(path.parent)
 
