@@ -276,6 +276,9 @@ def load_masks(folder: str | Path) -> list[np.ndarray]:
     """Masks written by `write_masks` (e.g. WS/masks), in view order, as bool arrays."""
     folder = Path(folder)
     index = folder / MASK_INDEX
+    if not index.is_file() and any(folder.glob("mask_*.png")):
+        raise WorkspaceError("the masks index is missing (the mask files are here)", index,
+                             hint=integrity.repair_hint(index, "run repaint-nerf select again"))
     if not index.is_file():
         raise WorkspaceError("no masks here (no index.json)", folder,
                              hint="make a selection first: repaint-nerf select WS --view I --patch x0,y0,x1,y1")

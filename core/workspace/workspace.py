@@ -133,6 +133,8 @@ class Workspace:
             raise WorkspaceError("no workspace folder here", root,
                                  hint="train first: repaint-nerf train SCENE --workspace " + str(root))
         marker = root / MARKER
+        if not marker.exists() and (root / "versions").is_dir():
+            raise WorkspaceDamaged("workspace.json is missing from this workspace", root, workspace=root)
         if not marker.exists():
             raise WorkspaceError("this folder is not a repaint-nerf workspace (no workspace.json)", root,
                                  hint="pass the folder given to `repaint-nerf train --workspace`")
@@ -179,6 +181,8 @@ class Workspace:
         """The saved settings (a fresh dict; change them with `update_settings`)."""
         path = self.root / "settings.json"
         if not path.exists():
+            if self._index_path().exists():  # every workspace is created with one: it was lost
+                raise _damaged("settings.json is missing", path)
             return {}
         data = _read_json(path)
         if not isinstance(data, dict):
@@ -199,6 +203,8 @@ class Workspace:
     def _index(self) -> dict:
         path = self._index_path()
         if not path.exists():
+            if any(self.versions_dir.glob("v*.safetensors")):  # versions saved, their index lost
+                raise _damaged("the version index is missing (the version files are here)", path)
             return {"versions": {}, "history": [], "current": -1}
         data = _read_json(path)
         if not _valid_index(data):
