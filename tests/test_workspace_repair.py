@@ -276,3 +276,153 @@ def write_table(artifacts_dir):
     """The damage x (message, repaired, versions kept) table, for the issue's note."""
     yield
     (artifacts_dir / "workspace_repair.json").write_text(json.dumps(TABLE, indent=1))
+
+
+# -- kill -9 at seeded random points ----------------------------------------------------------------------
+def _arm_kill(n: int) -> None:
+    """SIGKILL this process at its n-th file-system step of a save: a sealed safetensors file written but not yet
+    sealed, a temporary file about to be synced, a rename about to happen, a folder about to be synced."""
+    count = [0]
+
+    def step(real):
+        def wrapped(*args):
+            count[0] += 1
+            if count[0] == n:
+                os.kill(os.getpid(), signal.SIGKILL)
+            return real(*args)
+        return wrapped
+
+    os.fsync, os.replace = step(os.fsync), step(os.replace)
+    integrity.seal_file = step(integrity.seal_file)
+
+
+def _phase_training(base: Base, ws: Workspace, saved) -> None:
+    """Stage 1 as the editor runs it: train, save the training checkpoint, save a reconstruction version."""
+    tr = base.trainer
+    tr.workspace = ws
+    while True:
+        tr.train(steps=tr.step_count + 1)
+        tr.save_checkpoint()
+        saved(tr.save_version("reconstruction"))
+
+
+def _phase_repaint(base: Base, ws: Workspace, saved) -> None:
+    """Repaints that finish and save themselves as edit versions."""
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
+
+    while True:
+        rp = RepaintTrainer(base.scene, base.trainer.field, base.trainer.grid, workspace=ws, masks=base.masks,
+                            guidance="recolor", prompt="a green box", steps=2, resolution=16, max_samples=32,
+                            snapshot_every=0, region_resolution=16)
+        rp.run()
+        saved(rp.version)
+
+
+def _phase_save(base: Base, ws: Workspace, saved) -> None:
+    """Saving the project: settings, the selection, its masks, a version, undo and redo (index writes)."""
+    from repaint_nerf.core.select.masks import write_masks
+    from repaint_nerf.core.select.selection import Selection
+
+    sel, ck, i = Selection.load(ws), base.trainer.checkpoint(), 0
+    while True:
+        i += 1
+        ws.update_settings(saves=i)
+        sel.save(ws)
+        masks = [~m for m in base.masks] if i % 2 else base.masks  # new content: a torn write shows
+        write_masks(ws.masks_dir, masks, list(base.scene.train.names))
+        saved(ws.save_version(f"save {i}", ck))
+        ws.undo()
+        ws.redo()
+
+
+PHASES = {"training": _phase_training, "repaint": _phase_repaint, "save": _phase_save}
+
+
+def _killed_run(base: Base, root: Path, phase: str, at_step: int | None, delay: float | None) -> dict[str, str]:
+    """Run `phase` on `root` in a forked child until it is SIGKILLed (at its `at_step`-th save step, or by this
+    process after `delay` s); returns the versions whose save returned before the kill (id -> content hash)."""
+    log, err = root.parent / "saved.log", root.parent / "child.err"
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: never returns into pytest
+        code = 0
+        try:
+            os.close(r)
+            torch.set_num_threads(1)
+            ws = Workspace.open(root)
+            with open(log, "a") as out:
+                def saved(info):
+                    out.write(f"{info.id} {info.sha256}\n")
+                    out.flush()  # in the kernel's page cache: survives the SIGKILL of this process
+                if at_step is not None:
+                    _arm_kill(at_step)
+                os.write(w, b"1")
+                PHASES[phase](base, ws, saved)
+        except BaseException:
+            err.write_text(traceback.format_exc())
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(w)
+    os.read(r, 1)
+    os.close(r)
+    if delay is not None:
+        time.sleep(delay)
+        os.kill(pid, signal.SIGKILL)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, \
+        err.read_text() if err.exists() else status
+    return dict(line.split() for line in log.read_text().splitlines()) if log.exists() else {}
+
+
+def _versions_kept(root: Path, complete: dict[str, str]) -> int:
+    """How many of the `complete` versions the workspace lists and reads back with their saved content hash."""
+    try:
+        ws = Workspace.open(root)
+        index = ws._index()["versions"]
+    except UserError:
+        return 0
+    kept = 0
+    for vid, digest in complete.items():
+        try:
+            info = ws.versions[0].__class__(**index[vid])
+            Checkpoint.load(ws.version_path(info))
+            kept += info.sha256 == digest
+        except (KeyError, UserError):
+            pass
+    return kept
+
+
+def _kill_points() -> list[tuple[str, int | None, float | None]]:
+    """24 kill points, seeded: per phase 5 at a random save step (1-30) and 3 at a random moment (0.05-1.2 s)."""
+    rng = random.Random(36)
+    points = []
+    for phase in PHASES:
+        points += [(phase, rng.randint(1, 30), None) for _ in range(5)]
+        points += [(phase, None, round(rng.uniform(0.05, 1.2), 3)) for _ in range(3)]
+    return points
+
+
+@pytest.mark.timeout(300)
+def test_kill_9_anywhere_loses_no_complete_version(base, tmp_path):
+    """SIGKILL at 24 seeded points of training, of a Repaint and of a save: afterwards the workspace opens, or
+    `repair` makes it open, with every version whose save had returned (and every one from before) kept whole."""
+    before = {v.id: v.sha256 for v in Workspace.open(base.root).versions}
+    for k, (phase, at_step, delay) in enumerate(_kill_points()):
+        root = tmp_path / f"kill{k}" / "ws"
+        shutil.copytree(base.root, root)
+        complete = {**before, **_killed_run(base, root, phase, at_step, delay)}
+        opened = open_all(root)
+        actions = [] if opened == "opens" and _versions_kept(root, complete) == len(complete) \
+            else repair_workspace(root)
+        assert open_all(root) == "opens", (phase, at_step, delay, actions)
+        kept = _versions_kept(root, complete)
+        TABLE["kill"].append({"phase": phase, "kill": f"save step {at_step}" if at_step else f"after {delay} s",
+                              "opened": opened == "opens", "message": opened.splitlines()[0][len(str(root)) + 1:]
+                              if opened != "opens" else "", "repair_actions": len(actions),
+                              "versions_kept": kept, "versions_complete_before": len(complete)})
+        assert kept == len(complete), (phase, at_step, delay, kept, complete, actions)
+    kept = sum(r["versions_kept"] for r in TABLE["kill"])
+    total = sum(r["versions_complete_before"] for r in TABLE["kill"])
+    print(f"kill -9 at {len(TABLE['kill'])} points: {kept}/{total} complete versions kept")
+    assert kept == total
