@@ -61,3 +61,6 @@ class SaveFailed(WorkspaceError, OSError):
         super().__init__(f"cannot save this file: {what} ({exc.strerror or exc})", path,
                          hint=f"{hint}; the previous version of the file is unchanged")
         self.errno, self.strerror, self.filename = exc.errno, exc.strerror, str(path)
+
+    def __str__(self) -> str:
+        return str(self.args[0])  # the message and hint, not OSError's '[Errno N] ...' form

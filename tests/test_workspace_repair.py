@@ -10,6 +10,7 @@ tests/artifacts/workspace_repair.json.
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -426,3 +427,91 @@ def test_kill_9_anywhere_loses_no_complete_version(base, tmp_path):
     total = sum(r["versions_complete_before"] for r in TABLE["kill"])
     print(f"kill -9 at {len(TABLE['kill'])} points: {kept}/{total} complete versions kept")
     assert kept == total
+
+
+# -- a full disk, a read-only folder ----------------------------------------------------------------------
+@contextlib.contextmanager
+def _small_disk(folder: Path, size_kb: int):
+    """A tmpfs of `size_kb` mounted at `folder` when this process may mount (root), else a plain folder; yields
+    whether it is the real small disk."""
+    folder.mkdir(parents=True)
+    real = os.geteuid() == 0 and subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size_kb}k", "tmpfs", str(folder)], capture_output=True).returncode == 0
+    try:
+        yield real
+    finally:
+        if real:
+            subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+
+
+def _refuse(monkeypatch, code: int) -> None:
+    """Where no small disk can be mounted: the file system refuses every new file with `code`."""
+    def refused(*args, **kwargs):
+        raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", refused)
+
+
+def _state(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_full_disk_fails_with_a_message_and_keeps_the_previous_state(base, tmp_path, monkeypatch):
+    """Versions saved onto a small disk until it is full: the save that does not fit is a SaveFailed saying the
+    disk is full, and every file is as before it (no partial version, no temporary file, the index unchanged)."""
+    ck = base.trainer.checkpoint()
+    size = len(ck.tensors) and sum(t.numel() * t.element_size() for t in ck.tensors.values())
+    with _small_disk(tmp_path / "disk", int(2.5 * size) // 1024 + 64) as real:
+        ws = Workspace.create(tmp_path / "disk" / "ws", {"scene": str(base.scene.root)})
+        ws.save_version("first", ck, kind="stage1")
+        if not real:
+            _refuse(monkeypatch, errno.ENOSPC)
+        for i in range(20):
+            state = _state(ws.root)
+            try:
+                ws.save_version(f"edit {i}", ck)
+            except SaveFailed as exc:
+                failed = exc
+                break
+        else:
+            pytest.fail("the small disk never filled up")
+        assert failed.errno == errno.ENOSPC and "the disk is full" in str(failed) and "unchanged" in str(failed)
+        assert _state(ws.root) == state
+        monkeypatch.undo()
+        assert open_all(ws.root) == "opens" and repair_workspace(ws.root) == []
+        TABLE.setdefault("disk", []).append({"case": "full disk", "how": "tmpfs" if real else "simulated ENOSPC",
+                                             "message": str(failed).splitlines()[0].split(": ", 1)[1],
+                                             "versions_kept": len(ws.versions), "versions_before": len(ws.versions)})
+
+
+def test_read_only_folder_fails_with_a_message_and_still_opens(base, tmp_path, monkeypatch):
+    """A workspace whose folder became read-only: saving is a SaveFailed saying so, nothing changes, and the
+    workspace still opens and reads its versions (opening writes nothing)."""
+    ck = base.trainer.checkpoint()
+    with _small_disk(tmp_path / "disk", 4096) as real:
+        ws = Workspace.create(tmp_path / "disk" / "ws", {"scene": str(base.scene.root)})
+        ws.save_version("first", ck, kind="stage1")
+        state = _state(ws.root)
+        if real:
+            subprocess.run(["mount", "-o", "remount,ro", str(tmp_path / "disk")], check=True)
+        elif os.geteuid() != 0:
+            for d in [ws.root, *(p for p in ws.root.rglob("*") if p.is_dir())]:
+                d.chmod(0o555)
+        else:
+            _refuse(monkeypatch, errno.EROFS)
+        try:
+            with pytest.raises(SaveFailed) as exc:
+                ws.save_version("second", ck)
+            with pytest.raises(SaveFailed):
+                ws.update_settings(threshold=0.4)
+            text = str(exc.value)
+            assert "read-only" in text or "not writable" in text
+            assert _state(ws.root) == state
+            opened = Workspace.open(ws.root)
+            Checkpoint.load(opened.version_path(opened.current_version))
+        finally:
+            for d in [ws.root, *(p for p in ws.root.rglob("*") if p.is_dir())] if not real else ():
+                d.chmod(0o755)
+        TABLE.setdefault("disk", []).append({"case": "read-only folder", "how": "tmpfs remounted read-only" if real
+                                             else "simulated", "message": text.splitlines()[0].split(": ", 1)[1],
+                                             "versions_kept": 1, "versions_before": 1})

@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import IO, Any, Iterator
@@ -81,13 +82,20 @@ def write_json(path: str | Path, obj: Any) -> None:
 def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] | None = None) -> str:
     """Atomically write torch tensors (moved to CPU, made contiguous) as a sealed safetensors file (its content
     hash inside, core.workspace.integrity); returns that hash."""
+    from safetensors import SafetensorError
     from safetensors.torch import save_file
 
     from repaint_nerf.core.workspace import integrity
 
     cpu = {k: v.detach().to("cpu").contiguous().clone() for k, v in tensors.items()}
     with atomic_path(path) as tmp:
-        save_file(cpu, str(tmp), metadata=integrity.sealed_metadata(metadata))
+        try:
+            save_file(cpu, str(tmp), metadata=integrity.sealed_metadata(metadata))
+        except SafetensorError as exc:  # its I/O errors (a full disk) name the OS error only in the text
+            code = re.search(r"os error (\d+)", str(exc))
+            if code is None:
+                raise
+            raise OSError(int(code.group(1)), os.strerror(int(code.group(1)))) from exc
         return integrity.seal_file(tmp)
 
 
