@@ -20,7 +20,6 @@ import signal
 import subprocess
 import time
 import traceback
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,72 +30,17 @@ from repaint_nerf.core.errors import SaveFailed, UserError, WorkspaceDamaged
 from repaint_nerf.core.train.checkpoint import Checkpoint
 from repaint_nerf.core.workspace import atomic, integrity
 from repaint_nerf.core.workspace.repair import repair_workspace
-from repaint_nerf.core.workspace.workspace import Workspace
+from repaint_nerf.core.workspace.workspace import VersionInfo, Workspace
+from small_workspace import Base, small_workspace
 
 TABLE: dict[str, list] = {"damage": [], "kill": []}
 
 
-@dataclass
-class Base:
-    """A small trained workspace: a reconstruction and two edits, a selection with masks, teacher caches."""
-
-    root: Path
-    scene: object
-    trainer: object
-    masks: list
-    other: Path  # another workspace with versions of its own (the source of foreign files)
-
-
-def _tiny_field():
-    from repaint_nerf.core.field.field import FieldConfig
-
-    return FieldConfig(levels=4, log2_table=10, base_res=8, finest_res=64, hidden=16, geo_feat_dim=7, sh_degree=2,
-                       feature_dim=4, feature_levels=2, feature_log2_table=10, feature_hidden=8,
-                       encoding_impl="indexed", compile=False)
-
-
-def _edit(base_scene, trainer, ws, masks, prompt: str) -> None:
-    from repaint_nerf.core.repaint.trainer import RepaintTrainer
-
-    RepaintTrainer(base_scene, trainer.field, trainer.grid, workspace=ws, masks=masks, guidance="recolor",
-                   prompt=prompt, steps=2, resolution=16, max_samples=32, snapshot_every=0,
-                   region_resolution=16).run()
-
-
 @pytest.fixture(scope="module")
 def base(scene_factory, tmp_path_factory) -> Base:
-    from repaint_nerf.core.scene.loaders.detect import load_scene
-    from repaint_nerf.core.select.masks import ViewCache, masks_for_views
-    from repaint_nerf.core.select.query import Patch
-    from repaint_nerf.core.select.selection import Selection
-    from repaint_nerf.core.teachers.stage1_targets import depth_priors, feature_targets
-    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
-
     torch.set_num_threads(1)
-    path = scene_factory("demo", size=16, views=4, test_views=1)
-    root = tmp_path_factory.mktemp("repair") / "ws"
-    ws = Workspace.create(root, {"scene": str(path), "downscale": 1.0})
-    scene = load_scene(path, 1.0, workspace=root)
-    cfg = TrainConfig(rays_per_batch=64, grid_resolution=16, max_samples=32, grid_warmup_steps=2)
-    trainer = Stage1Trainer(scene, ws, cfg, _tiny_field(), device="cpu",
-                            feature_targets=feature_targets(scene, ws, dims=4), depth_priors=depth_priors(scene, ws))
-    trainer.train(steps=3)
-    trainer.save_checkpoint()
-    trainer.save_version("reconstruction")
-    cams = scene.field_cameras("train")
-    cache = ViewCache(trainer.field, trainer.grid, cams)
-    sel = Selection(threshold=0.5, cleanup=False, teacher="default")
-    sel.add_patch(cache.get(0).feature, Patch(0, 4, 4, 12, 12))
-    with torch.no_grad():
-        masks = masks_for_views(trainer.field, trainer.grid, cams, sel, workspace=ws, cache=cache,
-                                names=list(scene.train.names), images=scene.train.images)
-    sel.save(ws)
-    for prompt in ("a blue box", "a red box"):
-        _edit(scene, trainer, ws, masks, prompt)
-    other = Workspace.create(root.parent / "other", {"scene": str(path)})
-    for name in ("theirs", "theirs too"):
-        other.save_version(name, trainer.checkpoint(), kind="stage1")
-    return Base(root, scene, trainer, masks, other.root)
+    return small_workspace(scene_factory("demo", size=16, views=4, test_views=1),
+                           tmp_path_factory.mktemp("repair") / "ws")
 
 
 # -- what a user sees --------------------------------------------------------------------------------------
@@ -130,7 +74,7 @@ def _bytes_of_versions(root: Path) -> dict[str, bytes]:
 def _kept(root: Path, before: dict[str, bytes]) -> int:
     """Versions of `before` that the workspace lists and whose file is byte for byte what it was."""
     ws = Workspace.open(root)
-    listed = {v: ws.version_path(ws.versions[0].__class__(**info)) for v, info in ws._index()["versions"].items()}
+    listed = {v: ws.version_path(VersionInfo(**info)) for v, info in ws._index()["versions"].items()}
     return sum(1 for vid, data in before.items() if vid in listed and listed[vid].read_bytes() == data)
 
 
@@ -386,7 +330,7 @@ def _versions_kept(root: Path, complete: dict[str, str]) -> int:
     kept = 0
     for vid, digest in complete.items():
         try:
-            info = ws.versions[0].__class__(**index[vid])
+            info = VersionInfo(**index[vid])
             Checkpoint.load(ws.version_path(info))
             kept += info.sha256 == digest
         except (KeyError, UserError):
