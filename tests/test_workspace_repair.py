@@ -459,3 +459,24 @@ def test_read_only_folder_fails_with_a_message_and_still_opens(base, tmp_path, m
         TABLE.setdefault("disk", []).append({"case": "read-only folder", "how": "tmpfs remounted read-only" if real
                                              else "simulated", "message": text.splitlines()[0].split(": ", 1)[1],
                                              "versions_kept": 1, "versions_before": 1})
+
+
+def test_an_unchanged_version_opens_without_hashing_and_a_rewrite_is_hashed(base, tmp_path, monkeypatch):
+    """Opening reads a version's identity (size, times, inode) recorded at save: unchanged, its content hash is
+    not recomputed; rewritten, even with the modification time put back, it is hashed and refused."""
+    root = tmp_path / "ws"
+    ws = Workspace.create(root, {"scene": str(base.scene.root)})
+    info = ws.save_version("reconstruction", base.trainer.checkpoint(), kind="stage1")
+    hashed = []
+    real = integrity._digest
+    monkeypatch.setattr(integrity, "_digest", lambda *a: hashed.append(1) or real(*a))
+    monkeypatch.setattr(integrity, "_CHECKED", {})  # a new process: nothing checked yet
+    path = Workspace.open(root).version_path(info)
+    Checkpoint.load(path)
+    assert hashed == []
+    st = os.stat(path)
+    flip(path, base)
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns))
+    with pytest.raises(WorkspaceDamaged, match="content hash"):
+        Checkpoint.load(Workspace.open(root).version_path(info))
+    assert hashed

@@ -7,11 +7,19 @@ temporary file before the atomic rename). A JSON file (the version index, a sele
 sealed by a `"sha256"` field: the hash of its other fields in canonical form. Files written before the seals
 existed carry none: they read as before (`None` from the checks), and only a seal that does not match is
 damage.
+
+Hashing is the slow part (SHA-256 runs at ~1.5 GB/s here), so, like git's index, a file checked once (or saved)
+is remembered with its size, times, inode and device: while those are unchanged nothing rewrote it, and reading
+it again skips the hash. A workspace records that identity in its version index at save time, so opening an
+unchanged version costs a `stat`, and any rewrite (a truncation, flipped bytes, a foreign copy; even one that
+restores the modification time, as the change time moves) is hashed and refused. Bytes that change with no
+file-system write at all (media decay) are found by `repaint-nerf repair`, which hashes everything.
 """
 from __future__ import annotations
 
 import hashlib
 import json
+import os
 import struct
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -23,6 +31,7 @@ _BLANK = b"0" * 64
 _NEEDLE = f'"{SEAL_KEY}":"'.encode()
 _MAX_HEADER = 100 * 2**20  # safetensors' own limit on the JSON header
 _CHUNK = 2**20
+_CHECKED: dict[str, tuple[tuple[int, ...], str | None]] = {}  # abspath -> (stat identity, digest) of this process
 
 
 class IntegrityError(Exception):
@@ -104,9 +113,51 @@ def stored_digest(path: str | Path) -> str | None:
     return None if at is None else header[at:at + 64].decode("ascii", "replace")
 
 
-def verify_file(path: str | Path) -> str | None:
+def stat_key(path: str | Path) -> list[int]:
+    """What changes whenever a file is rewritten: size, modification and change times (ns), inode, device."""
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino, st.st_dev]
+
+
+def remember(path: str | Path, key: list[int], digest: str | None) -> None:
+    """Record that `path`, as identified by `key`, holds the content whose seal is `digest` (saved or checked)."""
+    _CHECKED[os.path.abspath(path)] = (tuple(key), digest)
+
+
+def trust(path: str | Path, key: list[int] | None, digest: str | None) -> bool:
+    """Take the file as checked when its identity is still `key` (recorded when it was saved or last checked);
+    False, and nothing remembered, when the file was rewritten since (or no identity was recorded)."""
+    if not key or digest is None:
+        return False
+    try:
+        now = stat_key(path)
+    except OSError:
+        return False
+    if now != list(key):
+        return False
+    remember(path, now, digest)
+    return True
+
+
+def checked_key(path: str | Path, digest: str | None) -> list[int] | None:
+    """The identity under which this process checked `path` to hold `digest`, if the file still has it."""
+    hit = _CHECKED.get(os.path.abspath(path))
+    if hit is None or hit[1] != digest or digest is None:
+        return None
+    try:
+        return list(hit[0]) if stat_key(path) == list(hit[0]) else None
+    except OSError:
+        return None
+
+
+def verify_file(path: str | Path, full: bool = False) -> str | None:
     """Hash the whole file and compare with its seal: the digest when it matches, None for an unsealed (older)
-    file; an IntegrityError saying what is wrong otherwise. Costs one read at ~1.5 GB/s (SHA-256)."""
+    file; an IntegrityError saying what is wrong otherwise. Costs one read at ~1.5 GB/s (SHA-256), skipped for
+    a file this process saved or checked and nothing rewrote since (`full` hashes regardless: `repair`)."""
+    key = stat_key(path)
+    hit = _CHECKED.get(os.path.abspath(path))
+    if not full and hit is not None and hit[0] == tuple(key):
+        return hit[1]
     with open(path, "rb") as f:
         header = _read_header(f)
         at = _seal_at(header)
@@ -116,6 +167,7 @@ def verify_file(path: str | Path) -> str | None:
         actual = _digest(header, at, f)
     if actual != stored:
         raise IntegrityError("its content hash does not match (the file is truncated or altered)")
+    remember(path, key, stored)
     return stored
 
 
@@ -158,6 +210,18 @@ def check_json(obj: Any) -> bool | None:
     if not isinstance(obj, dict) or JSON_SEAL not in obj:
         return None
     return obj[JSON_SEAL] == json_digest(obj)
+
+
+def check_json_file(path: str | Path, key: list[int], obj: Any) -> bool | None:
+    """`check_json` of the object read from `path` (identified by `key`, taken before the read), remembered so
+    the many reads of one unchanged index hash it once."""
+    hit = _CHECKED.get(os.path.abspath(path))
+    if hit is not None and hit[0] == tuple(key) and isinstance(obj, dict) and hit[1] == obj.get(JSON_SEAL):
+        return True
+    ok = check_json(obj)
+    if ok:
+        remember(path, key, obj[JSON_SEAL])
+    return ok
 
 
 def bytes_digest(data: bytes) -> str:

@@ -74,7 +74,7 @@ def _check_version(path: Path, root: Path, ws_id: str | None, indexed: dict | No
     from repaint_nerf.core.train.checkpoint import Checkpoint, read_header
 
     try:
-        digest = integrity.verify_file(path)
+        digest = integrity.verify_file(path, full=True)
         stamp = integrity.read_stamp(path)
         header = read_header(path)
         if digest is None:  # a file from before the seals: whole when every tensor reads
@@ -91,8 +91,14 @@ def _check_version(path: Path, root: Path, ws_id: str | None, indexed: dict | No
     if "id" not in info:  # neither indexed nor stamped: what the header says
         info = {"id": path.stem, "name": "recovered", "created": path.stat().st_mtime, "parent": None,
                 "kind": header.kind}
-    info.update(file=str(path.relative_to(root)), sha256=digest)
+    info.update(file=str(path.relative_to(root)), sha256=digest, stat=integrity.stat_key(path))
     return info, ""
+
+
+def _without_stats(index: dict) -> dict:
+    """The index without its seal and the files' recorded identities (what a copied workspace changes)."""
+    return {**{k: v for k, v in index.items() if k != integrity.JSON_SEAL},
+            "versions": {v: {k: x for k, x in info.items() if k != "stat"} for v, info in index["versions"].items()}}
 
 
 def _old_index(rep: _Repair) -> dict | None:
@@ -127,13 +133,14 @@ def _repair_versions(rep: _Repair, ws_id: str | None) -> dict[str, dict]:
     for vid in sorted(set(indexed) - set(files)):
         rep.say(f"version {vid} ({indexed[vid].get('name')!r}): its file is missing; it leaves the index")
     new = rebuild_index(good, old)
-    if old is None or new != {k: v for k, v in old.items() if k != integrity.JSON_SEAL} \
-            or integrity.check_json(old) is None:
-        if good or old is not None:
-            atomic.write_json(root / "versions" / "index.json", integrity.seal_json(new))
-            cur = new["history"][new["current"]] if new["current"] >= 0 else None
-            rep.say(f"versions/index.json: {'rebuilt' if old is None else 'updated'} over {len(good)} good "
-                    f"version(s)" + (f", current {cur} ({good[cur]['name']!r})" if cur else ""))
+    if old is not None and _without_stats(new) == _without_stats(old) and integrity.check_json(old):
+        if new != {k: v for k, v in old.items() if k != integrity.JSON_SEAL}:  # only the files' identities moved
+            atomic.write_json(root / "versions" / "index.json", integrity.seal_json(new))  # (a copy): no repair
+    elif good or old is not None:
+        atomic.write_json(root / "versions" / "index.json", integrity.seal_json(new))
+        cur = new["history"][new["current"]] if new["current"] >= 0 else None
+        rep.say(f"versions/index.json: {'rebuilt' if old is None else 'updated'} over {len(good)} good "
+                f"version(s)" + (f", current {cur} ({good[cur]['name']!r})" if cur else ""))
     return good
 
 
@@ -272,7 +279,7 @@ def _repair_sealed_files(rep: _Repair, folder: str, pattern: str, consequence: s
     """Set aside the safetensors files under WS/`folder` whose seal does not match or that are unreadable."""
     for path in sorted((rep.root / folder).glob(pattern)):
         try:
-            integrity.verify_file(path)
+            integrity.verify_file(path, full=True)
             integrity.read_metadata(path)
         except (integrity.IntegrityError, OSError) as exc:
             rep.set_aside(path, f"{exc}; {consequence}")

@@ -49,6 +49,7 @@ class VersionInfo:
     parent: str | None
     kind: str = "stage1"  # "stage1" (a reconstruction) or "edit"
     sha256: str | None = None  # the file's seal (core.workspace.integrity); None in indexes written before it
+    stat: list | None = None  # the file's identity when saved or last checked (integrity.stat_key): unchanged, no hash
 
 
 def _folder(name: str) -> property:
@@ -77,7 +78,7 @@ def _valid_index(data: Any) -> bool:
     versions, history, current = data["versions"], data["history"], data["current"]
     if not isinstance(versions, dict) or not isinstance(history, list) or type(current) is not int:
         return False
-    names = {"id", "name", "file", "created", "parent", "kind", "sha256"}
+    names = {"id", "name", "file", "created", "parent", "kind", "sha256", "stat"}
     for vid, info in versions.items():
         if not (isinstance(info, dict) and {"id", "name", "file", "created", "parent"} <= set(info) <= names
                 and info["id"] == vid and isinstance(info["file"], str)
@@ -206,14 +207,19 @@ class Workspace:
             if any(self.versions_dir.glob("v*.safetensors")):  # versions saved, their index lost
                 raise _damaged("the version index is missing (the version files are here)", path)
             return {"versions": {}, "history": [], "current": -1}
+        key = integrity.stat_key(path)
         data = _read_json(path)
         if not _valid_index(data):
             raise _damaged("the version index is malformed", path)
-        if integrity.check_json(data) is False:
+        if integrity.check_json_file(path, key, data) is False:
             raise _damaged("the version index is damaged (its content hash does not match)", path)
         return data
 
     def _write_index(self, data: dict) -> None:
+        for info in data["versions"].values():  # versions checked since they were saved (e.g. in a copied workspace)
+            key = integrity.checked_key(self.root / info["file"], info.get("sha256"))
+            if key is not None:
+                info["stat"] = key
         atomic.write_json(self._index_path(), integrity.seal_json(data))
 
     @property
@@ -244,6 +250,8 @@ class Workspace:
         p = (self.root / str(info.file)).resolve()
         if Path(str(info.file)).is_absolute() or not p.is_relative_to(self.root.resolve()):
             raise _damaged(f"version {info.id} points outside the workspace ({info.file!r})", self._index_path())
+        if integrity.trust(p, info.stat, info.sha256):  # the file as saved: its reader skips the hash
+            return p
         where = f"version {info.id} ({info.name!r})"
         if not p.is_file():
             raise _damaged(f"{where}: its file is missing", p)
@@ -270,9 +278,11 @@ class Workspace:
         info = VersionInfo(id=vid, name=name, file=rel, created=time.time(), parent=parent, kind=kind)
         # the file carries its own index entry and the settings, so `repair` can rebuild both from the versions
         stamp = {**asdict(info), "workspace": self.id, "settings": self.settings}
-        del stamp["sha256"]
+        del stamp["sha256"], stamp["stat"]
         state.save(self.root / rel, stamp=stamp)
         info.sha256 = integrity.stored_digest(self.root / rel)
+        info.stat = integrity.stat_key(self.root / rel)
+        integrity.remember(self.root / rel, info.stat, info.sha256)
         idx["versions"][vid] = asdict(info)
         idx["history"] = idx["history"][: idx["current"] + 1] + [vid]
         idx["current"] = len(idx["history"]) - 1
