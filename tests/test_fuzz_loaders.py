@@ -317,18 +317,19 @@ def test_colmap_image_name_cannot_leave_the_image_folder(tmp_path):
 def test_workspace_files_cannot_point_outside(tmp_path):
     """A version entry or a mask index naming '../..' or an absolute path is a WorkspaceError."""
     from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.workspace import integrity
 
     ws = _workspace(tmp_path)
     index = ws.versions_dir / "index.json"
     data = json.loads(index.read_text())
     data["versions"]["v0002"]["file"] = "../../outside.safetensors"
-    index.write_text(json.dumps(data))
+    index.write_text(json.dumps(integrity.seal_json(data)))  # crafted to pass its content hash
     with pytest.raises(WorkspaceError, match="outside the workspace"):
         ws.version_path(ws.versions[1])
     masks = ws.masks_dir / "index.json"
     m = json.loads(masks.read_text())
     m["views"][0]["file"] = "/etc/passwd"
-    masks.write_text(json.dumps(m))
+    masks.write_text(json.dumps(integrity.seal_json(m)))
     with pytest.raises(WorkspaceError, match="outside the masks folder"):
         load_masks(ws.masks_dir)
 

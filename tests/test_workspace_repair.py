@@ -314,7 +314,14 @@ def _killed_run(base: Base, root: Path, phase: str, at_step: int | None, delay: 
     if delay is not None:
         time.sleep(delay)
         os.kill(pid, signal.SIGKILL)
-    _, status = os.waitpid(pid, 0)
+    deadline = time.monotonic() + 60
+    while (done := os.waitpid(pid, os.WNOHANG))[0] == 0:
+        if time.monotonic() > deadline:  # e.g. a lock held by another thread at the fork: fail, do not hang
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail(f"the {phase} child never reached save step {at_step}")
+        time.sleep(0.005)
+    status = done[1]
     assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, \
         err.read_text() if err.exists() else status
     return dict(line.split() for line in log.read_text().splitlines()) if log.exists() else {}
@@ -480,3 +487,16 @@ def test_an_unchanged_version_opens_without_hashing_and_a_rewrite_is_hashed(base
     with pytest.raises(WorkspaceDamaged, match="content hash"):
         Checkpoint.load(Workspace.open(root).version_path(info))
     assert hashed
+
+
+def test_repair_leaves_a_newer_programs_workspace_alone(base, tmp_path):
+    """A version of a newer header format is not damage: repair refuses and moves nothing."""
+    from safetensors.torch import save_file
+
+    root = tmp_path / "ws"
+    shutil.copytree(base.root, root)
+    newer = root / "versions" / "v0009.safetensors"
+    save_file({"w": torch.ones(2)}, str(newer), metadata={"repaint_nerf": json.dumps({"format": 99})})
+    with pytest.raises(UserError, match="newer repaint-nerf"):
+        repair_workspace(root)
+    assert newer.exists() and not (root / "damaged").exists()

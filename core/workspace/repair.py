@@ -73,6 +73,7 @@ def _check_version(path: Path, root: Path, ws_id: str | None, indexed: dict | No
     """(the version's index entry, '') for a whole version file of this workspace, else (None, the problem)."""
     from repaint_nerf.core.train.checkpoint import Checkpoint, read_header
 
+    _refuse_newer(path)
     try:
         digest = integrity.verify_file(path, full=True)
         stamp = integrity.read_stamp(path)
@@ -99,6 +100,19 @@ def _without_stats(index: dict) -> dict:
     """The index without its seal and the files' recorded identities (what a copied workspace changes)."""
     return {**{k: v for k, v in index.items() if k != integrity.JSON_SEAL},
             "versions": {v: {k: x for k, x in info.items() if k != "stat"} for v, info in index["versions"].items()}}
+
+
+def _refuse_newer(path: Path) -> None:
+    """A version written by a newer program is not damage: repair stops rather than set it aside."""
+    from repaint_nerf.core.train.header import FORMAT_VERSION as HEADER_FORMAT, HEADER_KEY
+
+    try:
+        fmt = json.loads(integrity.read_metadata(path).get(HEADER_KEY, "{}")).get("format")
+    except (integrity.IntegrityError, OSError, ValueError, AttributeError):
+        return  # unreadable: the checks that follow say how
+    if isinstance(fmt, int) and fmt > HEADER_FORMAT:
+        raise WorkspaceError(f"this version was written by a newer repaint-nerf (format {fmt}); nothing was changed",
+                             path, hint="repair the workspace with the program version that wrote it")
 
 
 def _old_index(rep: _Repair) -> dict | None:
