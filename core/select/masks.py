@@ -268,7 +268,7 @@ def write_masks(folder: str | Path, masks: list[np.ndarray], names: list[str] | 
         paths.append(p)
         views.append({"view": i, "file": p.name, "name": names[i] if names else None,
                       "pixels": int(np.count_nonzero(m)), "sha256": integrity.bytes_digest(png)})
-    atomic.write_json(folder / MASK_INDEX, integrity.seal_json({**(info or {}), "views": views}))
+    atomic.write_sealed_json(folder / MASK_INDEX, {**(info or {}), "views": views})
     return paths
 
 
@@ -286,8 +286,9 @@ def load_masks(folder: str | Path) -> list[np.ndarray]:
 
     again = "run repaint-nerf select again"
     try:
-        data = json.loads(index.read_text(encoding="utf-8"))
-        if integrity.check_json(data) is False:
+        text = index.read_text(encoding="utf-8")
+        data = json.loads(text)
+        if integrity.check_json_text(text, data) is False:
             raise ValueError("its content hash does not match: the file is damaged")
         views = data["views"]
         files = [(str(v["file"]), v.get("sha256")) for v in views]

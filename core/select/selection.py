@@ -153,7 +153,7 @@ class Selection:
     def save(self, workspace, name: str = "current") -> Path:
         """Write the selection to WS/selections/<name>.json atomically, sealed with its content hash; returns the path."""
         path = Path(workspace.selections_dir) / f"{name}.json"
-        atomic.write_json(path, integrity.seal_json(self.to_dict()))
+        atomic.write_sealed_json(path, self.to_dict())
         return path
 
     @staticmethod
@@ -164,8 +164,9 @@ class Selection:
             raise WorkspaceError("no selection saved here", path,
                                  hint="make one: repaint-nerf select WS --view I --patch x0,y0,x1,y1")
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
-            if integrity.check_json(data) is False:
+            text = path.read_text(encoding="utf-8")
+            data = json.loads(text)
+            if integrity.check_json_text(text, data) is False:
                 raise ValueError("its content hash does not match: the file is damaged")
             return Selection.from_dict(data)
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:

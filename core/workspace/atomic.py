@@ -79,6 +79,15 @@ def write_json(path: str | Path, obj: Any) -> None:
         f.write(text + "\n")
 
 
+def write_sealed_json(path: str | Path, obj: dict) -> None:
+    """Atomically write `obj` as indented JSON sealed with its content hash (integrity.sealed_json_text)."""
+    from repaint_nerf.core.workspace import integrity
+
+    text = integrity.sealed_json_text(obj)
+    with atomic_open(path, "w") as f:
+        f.write(text)
+
+
 def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] | None = None) -> str:
     """Atomically write torch tensors (moved to CPU, made contiguous) as a sealed safetensors file (its content
     hash inside, core.workspace.integrity); returns that hash."""

@@ -4,7 +4,7 @@ tensor, and git names objects by their hash).
 A safetensors file is *sealed*: its metadata holds `SEAL_KEY`, the SHA-256 of the whole file with that value
 written as 64 zeros, so the file checks itself with no index (the digest is patched into place in the
 temporary file before the atomic rename). A JSON file (the version index, a selection, the masks index) is
-sealed by a `"sha256"` field: the hash of its other fields in canonical form. Files written before the seals
+sealed by a last `"sha256"` field: the hash of its text with that value blanked. Files written before the seals
 existed carry none: they read as before (`None` from the checks), and only a seal that does not match is
 damage.
 
@@ -29,6 +29,7 @@ JSON_SEAL = "sha256"
 STAMP_KEY = "repaint_nerf_version"  # a workspace version's identity (core.workspace.workspace.save_version)
 _BLANK = b"0" * 64
 _NEEDLE = f'"{SEAL_KEY}":"'.encode()
+_JSON_NEEDLE = f'"{JSON_SEAL}": "'
 _MAX_HEADER = 100 * 2**20  # safetensors' own limit on the JSON header
 _CHUNK = 2**20
 _CHECKED: dict[str, tuple[tuple[int, ...], str | None]] = {}  # abspath -> (stat identity, digest) of this process
@@ -194,34 +195,26 @@ def read_stamp(path: str | Path) -> dict[str, Any] | None:
     return stamp if isinstance(stamp, dict) else None
 
 
-def json_digest(obj: dict) -> str:
-    """SHA-256 of a JSON object without its seal field, in canonical form (sorted keys, no spaces)."""
+def sealed_json_text(obj: dict) -> str:
+    """`obj` as indented JSON text sealed by a last `"sha256"` field: the SHA-256 of this very text with that
+    value written as 64 zeros (hashing the text read back costs microseconds; re-serialising would cost more)."""
     body = {k: v for k, v in obj.items() if k != JSON_SEAL}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    text = json.dumps({**body, JSON_SEAL: _BLANK.decode()}, indent=2) + "\n"
+    at = text.rindex(_JSON_NEEDLE) + len(_JSON_NEEDLE)
+    return text[:at] + hashlib.sha256(text.encode()).hexdigest() + text[at + 64:]
 
 
-def seal_json(obj: dict) -> dict:
-    """`obj` with its seal field set (write the result; `check_json` verifies it when read back)."""
-    return {**{k: v for k, v in obj.items() if k != JSON_SEAL}, JSON_SEAL: json_digest(obj)}
-
-
-def check_json(obj: Any) -> bool | None:
-    """Whether a parsed JSON object matches its seal; None when it carries none (an older file)."""
+def check_json_text(text: str, obj: Any) -> bool | None:
+    """Whether JSON `text` (parsed: `obj`) matches its seal; None when it carries none (an older file). Any
+    edit, re-serialisation included, makes it False."""
     if not isinstance(obj, dict) or JSON_SEAL not in obj:
         return None
-    return obj[JSON_SEAL] == json_digest(obj)
-
-
-def check_json_file(path: str | Path, key: list[int], obj: Any) -> bool | None:
-    """`check_json` of the object read from `path` (identified by `key`, taken before the read), remembered so
-    the many reads of one unchanged index hash it once."""
-    hit = _CHECKED.get(os.path.abspath(path))
-    if hit is not None and hit[0] == tuple(key) and isinstance(obj, dict) and hit[1] == obj.get(JSON_SEAL):
-        return True
-    ok = check_json(obj)
-    if ok:
-        remember(path, key, obj[JSON_SEAL])
-    return ok
+    stored = str(obj[JSON_SEAL])
+    at = text.rfind(_JSON_NEEDLE + stored)
+    if at < 0 or len(stored) != 64:
+        return False
+    at += len(_JSON_NEEDLE)
+    return hashlib.sha256((text[:at] + _BLANK.decode() + text[at + 64:]).encode()).hexdigest() == stored
 
 
 def bytes_digest(data: bytes) -> str:

@@ -55,7 +55,7 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _read_json(path: Path) -> tuple[Any, str | None]:
-    """(parsed JSON, None) or (None, what is wrong with the file)."""
+    """(parsed JSON, None) or (None, what is wrong with the file: unreadable, empty, not JSON, altered)."""
     try:
         data = path.read_bytes()
     except OSError as exc:
@@ -63,9 +63,13 @@ def _read_json(path: Path) -> tuple[Any, str | None]:
     if not data.strip():
         return None, "it is empty"
     try:
-        return json.loads(data.decode("utf-8")), None
+        text = data.decode("utf-8")
+        obj = json.loads(text)
     except (UnicodeDecodeError, ValueError):
         return None, "it is not valid JSON (truncated or altered)"
+    if integrity.check_json_text(text, obj) is False:
+        return None, "its content hash does not match (altered)"
+    return obj, None
 
 
 # -- version files ---------------------------------------------------------------------------------------
@@ -123,8 +127,6 @@ def _old_index(rep: _Repair) -> dict | None:
     data, problem = _read_json(path)
     if problem is None and not _valid_index(data):
         problem = "it is not a valid version index"
-    if problem is None and integrity.check_json(data) is False:
-        problem = "its content hash does not match (altered)"
     if problem:
         rep.set_aside(path, problem)
         return None
@@ -147,11 +149,11 @@ def _repair_versions(rep: _Repair, ws_id: str | None) -> dict[str, dict]:
     for vid in sorted(set(indexed) - set(files)):
         rep.say(f"version {vid} ({indexed[vid].get('name')!r}): its file is missing; it leaves the index")
     new = rebuild_index(good, old)
-    if old is not None and _without_stats(new) == _without_stats(old) and integrity.check_json(old):
+    if old is not None and _without_stats(new) == _without_stats(old) and integrity.JSON_SEAL in old:
         if new != {k: v for k, v in old.items() if k != integrity.JSON_SEAL}:  # only the files' identities moved
-            atomic.write_json(root / "versions" / "index.json", integrity.seal_json(new))  # (a copy): no repair
+            atomic.write_sealed_json(root / "versions" / "index.json", new)  # (a copy): no repair
     elif good or old is not None:
-        atomic.write_json(root / "versions" / "index.json", integrity.seal_json(new))
+        atomic.write_sealed_json(root / "versions" / "index.json", new)
         cur = new["history"][new["current"]] if new["current"] >= 0 else None
         rep.say(f"versions/index.json: {'rebuilt' if old is None else 'updated'} over {len(good)} good "
                 f"version(s)" + (f", current {cur} ({good[cur]['name']!r})" if cur else ""))
@@ -260,8 +262,6 @@ def _repair_selections(rep: _Repair) -> None:
 
     for path in sorted((rep.root / "selections").glob("*.json")):
         data, problem = _read_json(path)
-        if problem is None and integrity.check_json(data) is False:
-            problem = "its content hash does not match (altered)"
         if problem is None:
             try:
                 Selection.from_dict(data)

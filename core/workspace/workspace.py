@@ -58,11 +58,22 @@ def _folder(name: str) -> property:
 
 
 def _read_json(path: Path) -> Any:
+    return _parse(_read_text(path), path)
+
+
+def _read_text(path: Path) -> str:
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except (OSError, UnicodeDecodeError) as exc:
+        raise _damaged(f"cannot read this file: it is corrupt ({exc.__class__.__name__}: {exc})", path) from exc
+
+
+def _parse(text: str, path: Path) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
         raise _damaged(f"cannot read this file: it is corrupt ({exc.__class__.__name__}: {exc})", path) from exc
 
 
@@ -207,11 +218,11 @@ class Workspace:
             if any(self.versions_dir.glob("v*.safetensors")):  # versions saved, their index lost
                 raise _damaged("the version index is missing (the version files are here)", path)
             return {"versions": {}, "history": [], "current": -1}
-        key = integrity.stat_key(path)
-        data = _read_json(path)
+        text = _read_text(path)
+        data = _parse(text, path)
         if not _valid_index(data):
             raise _damaged("the version index is malformed", path)
-        if integrity.check_json_file(path, key, data) is False:
+        if integrity.check_json_text(text, data) is False:
             raise _damaged("the version index is damaged (its content hash does not match)", path)
         return data
 
@@ -220,7 +231,7 @@ class Workspace:
             key = integrity.checked_key(self.root / info["file"], info.get("sha256"))
             if key is not None:
                 info["stat"] = key
-        atomic.write_json(self._index_path(), integrity.seal_json(data))
+        atomic.write_sealed_json(self._index_path(), data)
 
     @property
     def versions(self) -> list[VersionInfo]:
