@@ -105,7 +105,9 @@ def write_safetensors(path: str | Path, tensors: dict, metadata: dict[str, str] 
             if code is None:
                 raise
             raise OSError(int(code.group(1)), os.strerror(int(code.group(1)))) from exc
-        return integrity.seal_file(tmp)
+        digest = integrity.seal_file(tmp)
+    integrity.record(path, digest)
+    return digest
 
 
 def write_sealed(path: str | Path, data: bytes) -> None:
@@ -113,6 +115,7 @@ def write_sealed(path: str | Path, data: bytes) -> None:
     from repaint_nerf.core.workspace import integrity
 
     write_bytes(path, integrity.seal_bytes(data))
+    integrity.record(path, integrity.stored_digest(path))
 
 
 def sweep_stale_temps(folder: str | Path, older_than_s: float = 300.0) -> list[Path]:

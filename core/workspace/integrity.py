@@ -33,6 +33,7 @@ _JSON_NEEDLE = f'"{JSON_SEAL}": "'
 _MAX_HEADER = 100 * 2**20  # safetensors' own limit on the JSON header
 _CHUNK = 2**20
 _CHECKED: dict[str, tuple[tuple[int, ...], str | None]] = {}  # abspath -> (stat identity, digest) of this process
+BOOK = ".checked.json"  # per folder: {file name: stat identity + [digest]} of the sealed files written there
 
 
 class IntegrityError(Exception):
@@ -125,6 +126,43 @@ def remember(path: str | Path, key: list[int], digest: str | None) -> None:
     _CHECKED[os.path.abspath(path)] = (tuple(key), digest)
 
 
+def record(path: str | Path, digest: str | None) -> None:
+    """After a sealed file is in place: remember it, and note its identity in its folder's book, so the next
+    process reads it without hashing while nothing rewrites it. The book is a cache: failing to write it, or
+    a damaged one, only means a hash later."""
+    path = Path(path)
+    key = stat_key(path)
+    remember(path, key, digest)
+    book = path.parent / BOOK
+    entries = _read_book(book)
+    entries[path.name] = key + [digest]
+    tmp = book.with_name(f"{BOOK}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(json.dumps(entries), encoding="utf-8")
+        os.replace(tmp, book)
+    except OSError:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+
+
+def _read_book(book: Path) -> dict:
+    try:
+        entries = json.loads(book.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return entries if isinstance(entries, dict) else {}
+
+
+def _booked(path: str | Path, key: list[int]) -> tuple[bool, str | None]:
+    """(True, digest) when the folder's book holds `path` with the identity `key`."""
+    entry = _read_book(Path(path).parent / BOOK).get(Path(path).name)
+    if isinstance(entry, list) and len(entry) == len(key) + 1 and entry[:-1] == key:
+        return True, entry[-1]
+    return False, None
+
+
 def trust(path: str | Path, key: list[int] | None, digest: str | None) -> bool:
     """Take the file as checked when its identity is still `key` (recorded when it was saved or last checked);
     False, and nothing remembered, when the file was rewritten since (or no identity was recorded)."""
@@ -159,6 +197,10 @@ def verify_file(path: str | Path, full: bool = False) -> str | None:
     hit = _CHECKED.get(os.path.abspath(path))
     if not full and hit is not None and hit[0] == tuple(key):
         return hit[1]
+    booked, digest = (False, None) if full else _booked(path, key)
+    if booked:
+        remember(path, key, digest)
+        return digest
     with open(path, "rb") as f:
         header = _read_header(f)
         at = _seal_at(header)
