@@ -82,10 +82,20 @@ class EditorApp:
         self.worker.call(fn, *args, **kwargs)
 
     def open_scene(self, path: str | None) -> None:
+        self._opened = path  # opened again after a repair
+        self.state.repair_offer = None
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
         self.worker.call(self.engine.load, path, self.state.workspace)
+
+    def repair_workspace(self) -> None:
+        """Repair the workspace that failed to open (the Scene panel's offer); it opens again when done."""
+        root, self.state.repair_offer = self.state.repair_offer, None
+        if root:
+            self.state.loading = True
+            self.state.say(f"repairing {root} ...")
+            self.call(self.engine.repair, root)
 
     def set_training(self, on: bool) -> None:
         self.state.training = on
@@ -196,6 +206,9 @@ class EditorApp:
                 s.say(f"{msg.name}: {msg.error}", "error")
                 if msg.name == "load":
                     s.loading = False
+                    s.repair_offer = msg.repairable
+                if msg.name == "repair":
+                    s.loading = False
                 if msg.name == "repaint":
                     s.repaint_running = False
                 if msg.name in ("select", "select_text"):
@@ -227,6 +240,10 @@ class EditorApp:
                 self.worker.set_training(True)
             elif msg.name in EXPORTS or msg.name in ("export_png", "save"):
                 s.say(export_message(msg.value))
+            elif msg.name == "repair":
+                for line in msg.value or ["nothing was damaged"]:
+                    s.say(f"repair: {line}")
+                self.open_scene(self._opened)
             elif msg.name in ("undo", "redo") and not msg.value:
                 s.say(f"nothing to {msg.name}")
             if msg.name in MODEL_CHANGING:

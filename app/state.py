@@ -30,6 +30,7 @@ class EditorState:
     workspace: str | None = None
     scene_info: dict = field(default_factory=dict)
     loading: bool = False
+    repair_offer: str | None = None  # a workspace that failed to open as damaged: the Scene panel offers repair
     view_mode: str = "rgb"
     tool: str = "navigate"  # or "select"
     threshold: float = 0.5

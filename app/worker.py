@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 from repaint_nerf.app.feature_view import FeatureProjector
 from repaint_nerf.app.resolution import DynamicResolution
-from repaint_nerf.core.errors import UserError
+from repaint_nerf.core.errors import UserError, WorkspaceDamaged
 
 
 PREVIEW_TRAIN_RATIO = 3.0  # seconds of training per second of preview rendering, at least
@@ -55,6 +55,7 @@ class Reply:
     value: Any = None
     error: str | None = None
     tag: Any = None
+    repairable: str | None = None  # a damaged workspace behind the error: the editor offers to repair it
 
 
 @dataclass
@@ -184,7 +185,8 @@ class Worker:
                 value = fn(*args, **kwargs)
                 self._publish(Reply(name, value, None, tag))
             except UserError as exc:
-                self._publish(Reply(name, None, str(exc), tag))
+                damaged = isinstance(exc, WorkspaceDamaged) and exc.workspace is not None
+                self._publish(Reply(name, None, str(exc), tag, str(exc.workspace) if damaged else None))
             except Exception:  # a bug: report it, keep the worker alive
                 self._publish(Reply(name, None, traceback.format_exc(limit=8), tag))
                 self._publish(Crashed(f"command {name}", traceback.format_exc()))

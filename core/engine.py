@@ -135,6 +135,13 @@ class Engine:
         self._saved_step = rec.trainer.step_count if ws.current_version is not None else -1
         return self.info()
 
+    @staticmethod
+    def repair(workspace: str | Path) -> list[str]:
+        """Repair a damaged workspace so it opens again (core.workspace.repair): one line per action."""
+        from repaint_nerf.core.workspace.repair import repair_workspace
+
+        return repair_workspace(workspace)
+
     def info(self) -> dict:
         """Facts the panels show: scene name, views, field-space training cameras, what can be done."""
         if self.scene is None:

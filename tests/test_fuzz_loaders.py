@@ -270,13 +270,13 @@ def test_fuzz_workspace_files(tmp_path):
     root = ws.root
     targets = [root / "workspace.json", root / "settings.json", root / "versions" / "index.json",
                root / "masks" / "index.json"]
-    originals = {p: json.loads(p.read_text()) for p in targets}
+    originals = {p: p.read_text() for p in targets}  # as written: a re-serialised sealed file no longer matches
     rng = random.Random(0)
     for case in range(150):
         p = rng.choice(targets)
-        p.write_text(_mutate_json(originals[p], rng))
+        p.write_text(_mutate_json(json.loads(originals[p]), rng))
         _outcome(lambda: _use_workspace(root))
-        p.write_text(json.dumps(originals[p]))
+        p.write_text(originals[p])
     ck = ws.version_path(ws.versions[1])
     good = ck.read_bytes()
     for _ in range(25):
@@ -317,18 +317,19 @@ def test_colmap_image_name_cannot_leave_the_image_folder(tmp_path):
 def test_workspace_files_cannot_point_outside(tmp_path):
     """A version entry or a mask index naming '../..' or an absolute path is a WorkspaceError."""
     from repaint_nerf.core.select.masks import load_masks
+    from repaint_nerf.core.workspace import integrity
 
     ws = _workspace(tmp_path)
     index = ws.versions_dir / "index.json"
     data = json.loads(index.read_text())
     data["versions"]["v0002"]["file"] = "../../outside.safetensors"
-    index.write_text(json.dumps(data))
+    index.write_text(integrity.sealed_json_text(data))  # crafted to pass its content hash
     with pytest.raises(WorkspaceError, match="outside the workspace"):
         ws.version_path(ws.versions[1])
     masks = ws.masks_dir / "index.json"
     m = json.loads(masks.read_text())
     m["views"][0]["file"] = "/etc/passwd"
-    masks.write_text(json.dumps(m))
+    masks.write_text(integrity.sealed_json_text(m))
     with pytest.raises(WorkspaceError, match="outside the masks folder"):
         load_masks(ws.masks_dir)
 

@@ -180,21 +180,26 @@ def test_selection_round_trip_in_workspace(tmp_path):
     assert back.teacher == "default" and back.geometry == "full"  # the default
     assert torch.equal(back.mask(f), sel.mask(f))
     old = ws.selections_dir / "old.json"  # saved before the choice existed: the clean-up it was made with
-    old.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k != "geometry"}))
+    old.write_text(json.dumps({k: v for k, v in json.loads(path.read_text()).items() if k not in ("geometry", "sha256")}))
     assert Selection.load(ws, "old").geometry == "basic"
     sel.add_anchors(np.array([[0.1, -0.2, 0.3], [0.4, 0.5, -0.6]], np.float32))
     sel.save(ws, "full")
     back = Selection.load(ws, "full")
     assert back.geometry == "full" and np.allclose(back.anchor_points(), sel.anchor_points(), atol=1e-5)
     bad = ws.selections_dir / "bad_anchor.json"
-    bad.write_text(json.dumps({**json.loads((ws.selections_dir / "full.json").read_text()), "anchors": [[1, 2]]}))
+    unsealed = {k: v for k, v in json.loads((ws.selections_dir / "full.json").read_text()).items() if k != "sha256"}
+    bad.write_text(json.dumps({**unsealed, "anchors": [[1, 2]]}))  # as written before selections had a hash
     with pytest.raises(WorkspaceError, match="anchor"):
         Selection.load(ws, "bad_anchor")
     sel.save(ws, "odd")
     odd = ws.selections_dir / "odd.json"
-    odd.write_text(odd.read_text().replace('"full"', '"wobbly"'))
+    odd.write_text(json.dumps({**unsealed, "geometry": "wobbly"}))
     with pytest.raises(WorkspaceError, match="unknown geometry 'wobbly'"):
         Selection.load(ws, "odd")
+    sealed = json.loads((ws.selections_dir / "full.json").read_text())
+    (ws.selections_dir / "edited.json").write_text(json.dumps({**sealed, "threshold": 0.9}))
+    with pytest.raises(WorkspaceError, match="content hash"):  # a sealed selection changed behind its back
+        Selection.load(ws, "edited")
     (ws.selections_dir / "broken.json").write_text("{")
     with pytest.raises(WorkspaceError):
         Selection.load(ws, "broken")

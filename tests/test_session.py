@@ -74,7 +74,20 @@ def _copy(trained_ws, tmp_path, edit_header=None):
         ck = Checkpoint.load(path)
         edit_header(ck.header)
         ck.save(path)
+        _as_before_seals(copy)
     return copy
+
+
+def _as_before_seals(root):
+    """The version index as a program before content hashes wrote it (no digests): a version file rewritten in
+    place, as these tests do to stand in for older files, is then not refused as not the one saved."""
+    index = root / "versions" / "index.json"
+    data = json.loads(index.read_text())
+    data.pop("sha256", None)
+    for info in data["versions"].values():
+        info.pop("sha256", None)
+        info.pop("stat", None)
+    index.write_text(json.dumps(data))
 
 
 def test_open_trained_uses_the_recorded_normalisation(trained_ws, tmp_path):
@@ -110,6 +123,7 @@ def test_format_1_workspace_still_opens(trained_ws, tmp_path):
         raw["format"] = 1
         atomic.write_safetensors(path, ck.tensors, {HEADER_KEY: json.dumps(raw)})
         assert read_header(path).format == 1
+    _as_before_seals(copy)
     t = open_trained(copy, "cpu")
     assert t.header.format == 1 and t.header.step == 12 and t.header.history.steps == []
     eng = Engine("cpu", features=True, depth=False)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 from imgui_bundle import imgui, implot
 
-from repaint_nerf.app.panels.common import unavailable
+from repaint_nerf.app.panels.common import remember_item, unavailable
 
 
 def draw(app) -> None:
@@ -18,6 +18,8 @@ def draw(app) -> None:
     if imgui.button("Demo scene"):
         app.open_scene(None)
     unavailable(app, "load")
+    if s.repair_offer:
+        _repair_offer(app)
     info = s.scene_info
     if s.loading:
         imgui.text("loading...")
@@ -52,3 +54,16 @@ def draw(app) -> None:
     imgui.same_line()
     if imgui.button("Turntable"):
         app.export_turntable(s.video_path)
+
+
+def _repair_offer(app) -> None:
+    """The offer shown when a workspace failed to open as damaged: repair it (core.workspace.repair) and reopen."""
+    imgui.text_colored(imgui.ImVec4(1.0, 0.55, 0.3, 1.0), "This workspace is damaged.")
+    imgui.text_wrapped("Repair sets damaged files aside in its damaged/ folder (nothing is deleted), rebuilds "
+                       "its index and settings, and keeps every good version.")
+    if imgui.button("Repair workspace"):
+        app.repair_workspace()
+    remember_item(app, "Repair workspace")
+    imgui.same_line()
+    if imgui.button("Not now"):
+        app.state.repair_offer = None

@@ -19,7 +19,7 @@ from torch import Tensor
 from repaint_nerf.core.errors import UserError, WorkspaceError
 from repaint_nerf.core.select.similarity import cosine_similarity
 from repaint_nerf.core.teachers.feature_default import DEFAULT_THRESHOLD
-from repaint_nerf.core.workspace import atomic
+from repaint_nerf.core.workspace import atomic, integrity
 
 # DEFAULT_THRESHOLD, alpha of the mask equation, is the one the default teacher's kernel is tuned for
 # (bench mask, demo preset, 600 steps: IoU 0.964 at 0.5, best 0.972 at 0.6; 0.945 at 0.35, 0.717 at 0.9).
@@ -251,7 +251,8 @@ def mask_png(mask: np.ndarray) -> bytes:
 
 def write_masks(folder: str | Path, masks: list[np.ndarray], names: list[str] | None = None,
                 info: dict | None = None) -> list[Path]:
-    """Write masks as mask_0000.png ... plus index.json into `folder` (atomically, file by file)."""
+    """Write masks as mask_0000.png ... plus index.json into `folder` (atomically, file by file); the index holds
+    each PNG's content hash and its own (core.workspace.integrity), so `load_masks` refuses a damaged mask."""
     folder = Path(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -262,11 +263,12 @@ def write_masks(folder: str | Path, masks: list[np.ndarray], names: list[str] | 
     views = []
     for i, m in enumerate(masks):
         p = folder / f"mask_{i:04d}.png"
-        atomic.write_bytes(p, mask_png(m))
+        png = mask_png(m)
+        atomic.write_bytes(p, png)
         paths.append(p)
         views.append({"view": i, "file": p.name, "name": names[i] if names else None,
-                      "pixels": int(np.count_nonzero(m))})
-    atomic.write_json(folder / MASK_INDEX, {**(info or {}), "views": views})
+                      "pixels": int(np.count_nonzero(m)), "sha256": integrity.bytes_digest(png)})
+    atomic.write_sealed_json(folder / MASK_INDEX, {**(info or {}), "views": views})
     return paths
 
 
@@ -274,24 +276,34 @@ def load_masks(folder: str | Path) -> list[np.ndarray]:
     """Masks written by `write_masks` (e.g. WS/masks), in view order, as bool arrays."""
     folder = Path(folder)
     index = folder / MASK_INDEX
+    if not index.is_file() and any(folder.glob("mask_*.png")):
+        raise WorkspaceError("the masks index is missing (the mask files are here)", index,
+                             hint=integrity.repair_hint(index, "run repaint-nerf select again"))
     if not index.is_file():
         raise WorkspaceError("no masks here (no index.json)", folder,
                              hint="make a selection first: repaint-nerf select WS --view I --patch x0,y0,x1,y1")
     import json
 
+    again = "run repaint-nerf select again"
     try:
-        views = json.loads(index.read_text(encoding="utf-8"))["views"]
-        files = [str(v["file"]) for v in views]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise WorkspaceError(f"the mask index is unreadable ({exc})", index, hint="run repaint-nerf select again")
+        text = index.read_text(encoding="utf-8")
+        data = json.loads(text)
+        if integrity.check_json_text(text, data) is False:
+            raise ValueError("its content hash does not match: the file is damaged")
+        views = data["views"]
+        files = [(str(v["file"]), v.get("sha256")) for v in views]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise WorkspaceError(f"the mask index is unreadable ({exc})", index,
+                             hint=integrity.repair_hint(index, again))
     out = []
-    for name in files:
-        if Path(name).is_absolute() or not (folder / name).resolve().is_relative_to(folder.resolve()):
+    for name, digest in files:
+        path = folder / name
+        if Path(name).is_absolute() or not path.resolve().is_relative_to(folder.resolve()):
             raise WorkspaceError(f"the mask index names a file outside the masks folder ({name!r})", index,
-                                 hint="run repaint-nerf select again")
-        img = cv2.imread(str(folder / name), cv2.IMREAD_GRAYSCALE)
-        if img is None:
-            raise WorkspaceError("a mask file is missing or corrupt", folder / name,
-                                 hint="run repaint-nerf select again")
+                                 hint=integrity.repair_hint(index, again))
+        data = path.read_bytes() if path.is_file() else b""
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE) if data else None
+        if img is None or (digest is not None and integrity.bytes_digest(data) != digest):
+            raise WorkspaceError("a mask file is missing or damaged", path, hint=integrity.repair_hint(path, again))
         out.append(img > 127)
     return out

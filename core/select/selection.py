@@ -17,7 +17,7 @@ from repaint_nerf.core.errors import UserError, WorkspaceError
 from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
 from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY, GEOMETRY_NAMES
 from repaint_nerf.core.select.query import Patch, patch_query, text_query
-from repaint_nerf.core.workspace import atomic
+from repaint_nerf.core.workspace import atomic, integrity
 
 FORMAT_VERSION = 1
 
@@ -151,9 +151,9 @@ class Selection:
                          created=float(d.get("created", 0.0)))
 
     def save(self, workspace, name: str = "current") -> Path:
-        """Write the selection to WS/selections/<name>.json atomically; returns the path."""
+        """Write the selection to WS/selections/<name>.json atomically, sealed with its content hash; returns the path."""
         path = Path(workspace.selections_dir) / f"{name}.json"
-        atomic.write_json(path, self.to_dict())
+        atomic.write_sealed_json(path, self.to_dict())
         return path
 
     @staticmethod
@@ -164,7 +164,11 @@ class Selection:
             raise WorkspaceError("no selection saved here", path,
                                  hint="make one: repaint-nerf select WS --view I --patch x0,y0,x1,y1")
         try:
-            return Selection.from_dict(json.loads(path.read_text(encoding="utf-8")))
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+            text = path.read_text(encoding="utf-8")
+            data = json.loads(text)
+            if integrity.check_json_text(text, data) is False:
+                raise ValueError("its content hash does not match: the file is damaged")
+            return Selection.from_dict(data)
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             raise WorkspaceError(f"cannot read this selection ({exc})", path,
-                                 hint="make a new selection with repaint-nerf select") from exc
+                                 hint=integrity.repair_hint(path, "make a new selection with repaint-nerf select")) from exc

@@ -22,7 +22,8 @@ from safetensors.numpy import load_file, save
 from repaint_nerf.core.errors import WorkspaceError
 from repaint_nerf.core.teachers.base import FeatureTeacher, check_image
 from repaint_nerf.core.teachers.codec import PCACodec, sample_codes
-from repaint_nerf.core.workspace.atomic import write_bytes
+from repaint_nerf.core.workspace.atomic import write_sealed
+from repaint_nerf.core.workspace.integrity import IntegrityError, sealed_metadata, verify_file
 
 FORMAT_VERSION = 1
 
@@ -125,8 +126,8 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
                 computed[i] = feats  # kept only until encoded below (fit images are few)
             tick()
         codec = PCACodec.fit(np.concatenate(samples, 0), k=dims, seed=seed)
-        write_bytes(basis_file, save(codec.to_arrays(), metadata={"version": str(FORMAT_VERSION),
-                                                                  "teacher": teacher.name}))
+        write_sealed(basis_file, save(codec.to_arrays(), metadata=sealed_metadata({"version": str(FORMAT_VERSION),
+                                                                                   "teacher": teacher.name})))
     codes, sizes = [], []
     for i, (im, f) in enumerate(zip(images, files)):
         rgb = check_image(im)
@@ -134,8 +135,8 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
         if c is None:
             feats = computed.pop(i) if i in computed else teacher(rgb)
             c = codec.encode(feats, scale=scale)
-            write_bytes(f, save({"codes": c}, metadata={"version": str(FORMAT_VERSION),
-                                                        "height": str(rgb.shape[0]), "width": str(rgb.shape[1])}))
+            write_sealed(f, save({"codes": c}, metadata=sealed_metadata({
+                "version": str(FORMAT_VERSION), "height": str(rgb.shape[0]), "width": str(rgb.shape[1])})))
         tick()
         codes.append(torch.from_numpy(np.ascontiguousarray(c)))
         sizes.append((int(rgb.shape[0]), int(rgb.shape[1])))
@@ -171,8 +172,9 @@ def _load_codec(path: Path) -> PCACodec | None:
     if not path.exists():
         return None
     try:
+        verify_file(path)
         return PCACodec.from_arrays(load_file(str(path)))
-    except (SafetensorError, KeyError, OSError):
+    except (SafetensorError, KeyError, OSError, IntegrityError):
         return None  # a damaged cache file is recomputed, not fatal
 
 
@@ -180,6 +182,7 @@ def _load_codes(path: Path) -> np.ndarray | None:
     if not path.exists():
         return None
     try:
+        verify_file(path)
         return load_file(str(path))["codes"]
-    except (SafetensorError, KeyError, OSError):
+    except (SafetensorError, KeyError, OSError, IntegrityError):
         return None

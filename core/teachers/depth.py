@@ -14,7 +14,8 @@ import torch
 from safetensors.numpy import load_file, save
 
 from repaint_nerf.core.errors import WorkspaceError
-from repaint_nerf.core.workspace.atomic import write_bytes
+from repaint_nerf.core.workspace.atomic import write_sealed
+from repaint_nerf.core.workspace.integrity import sealed_metadata, verify_file
 
 
 @dataclass
@@ -149,12 +150,13 @@ class DepthPriors:
             else:
                 arrays[f"{i}.depth"], arrays[f"{i}.valid"] = p.depth, p.valid.astype(np.uint8)
         arrays["sizes"] = np.asarray(self.sizes, np.int64).reshape(-1, 2)
-        write_bytes(path, save(arrays, metadata={"source": self.source, "version": "1"}))
+        write_sealed(path, save(arrays, metadata=sealed_metadata({"source": self.source, "version": "1"})))
 
     @staticmethod
     def load(path: str | Path) -> "DepthPriors":
         """Read priors written by `save`; a damaged file is a WorkspaceError naming it."""
         try:
+            verify_file(path)
             d = load_file(str(path))
             from safetensors import safe_open
 

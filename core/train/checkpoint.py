@@ -13,9 +13,10 @@ from typing import Any
 
 import torch
 
-from repaint_nerf.core.errors import WorkspaceError
+from repaint_nerf.core.errors import WorkspaceDamaged, WorkspaceError
 from repaint_nerf.core.train.header import DAMAGED_HINT, FORMAT_VERSION, HEADER_KEY, CheckpointHeader, check_format
 from repaint_nerf.core.workspace import atomic
+from repaint_nerf.core.workspace.integrity import STAMP_KEY, IntegrityError, verify_file, workspace_of
 
 CHECKPOINT_FORMAT = FORMAT_VERSION  # the version written; older ones are read (core.train.header)
 
@@ -38,10 +39,14 @@ class Checkpoint:
         """The header read through the schema (older formats upgraded)."""
         return CheckpointHeader.from_dict(self.header)
 
-    def save(self, path: str | Path) -> None:
-        """Write atomically to `path` (the previous file stays intact if anything fails)."""
+    def save(self, path: str | Path, stamp: dict | None = None) -> str:
+        """Write atomically to `path` (the previous file stays intact if anything fails), sealed with its content
+        hash (returned); `stamp` is a workspace version's identity (core.workspace.workspace.save_version)."""
         header = {"format": CHECKPOINT_FORMAT, **self.header}
-        atomic.write_safetensors(path, self.tensors, {HEADER_KEY: json.dumps(header)})
+        meta = {HEADER_KEY: json.dumps(header)}
+        if stamp is not None:
+            meta[STAMP_KEY] = json.dumps(stamp)
+        return atomic.write_safetensors(path, self.tensors, meta)
 
     @staticmethod
     def load(path: str | Path, device: torch.device | str = "cpu") -> "Checkpoint":
@@ -64,25 +69,38 @@ def read_header(path: str | Path) -> CheckpointHeader:
 
 
 def _read(path: Path, tensors: dict | None, device: torch.device | str = "cpu") -> dict:
-    """The raw header of a checkpoint file (format checked), filling `tensors` unless it is None."""
+    """The raw header of a checkpoint file (format checked), filling `tensors` unless it is None. Reading the
+    tensors first checks the file's content hash: damaged data is refused, never used."""
     from safetensors import safe_open
 
     if not path.is_file():
         raise WorkspaceError("checkpoint not found", path, hint="train first (repaint-nerf train)")
+    if tensors is not None:
+        try:
+            verify_file(path)
+        except (IntegrityError, OSError) as exc:
+            raise _damaged(path, f"cannot read this checkpoint: {exc}") from exc
     try:
         with safe_open(str(path), framework="pt", device=str(device)) as f:
             meta = f.metadata() or {}
             for k in f.keys() if tensors is not None else ():
                 tensors[k] = f.get_tensor(k)
     except Exception as exc:  # safetensors raises its own error types for truncated/garbled files
-        raise WorkspaceError(f"cannot read this checkpoint ({exc.__class__.__name__}: {exc})", path,
-                             hint=DAMAGED_HINT) from exc
+        raise _damaged(path, f"cannot read this checkpoint ({exc.__class__.__name__}: {exc})") from exc
     try:
         header = json.loads(meta[HEADER_KEY])
     except (KeyError, json.JSONDecodeError) as exc:
         raise WorkspaceError("this safetensors file has no repaint-nerf header", path, hint=DAMAGED_HINT) from exc
     check_format(header.get("format") if isinstance(header, dict) else None, path)
     return header
+
+
+def _damaged(path: Path, problem: str) -> WorkspaceError:
+    """The error for a damaged checkpoint: inside a workspace it offers `repair`, elsewhere DAMAGED_HINT."""
+    ws = workspace_of(path)
+    if ws is None:
+        return WorkspaceError(problem, path, hint=DAMAGED_HINT)
+    return WorkspaceDamaged(problem, path, workspace=ws)
 
 
 def split_state(state: dict) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
