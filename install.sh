@@ -12,7 +12,7 @@ PHASE="start"
 trap 'rc=$?; echo "install.sh: the \"$PHASE\" phase failed (exit $rc). Its last lines (all of it: $LOG):" >&2
       tail -n 30 "$LOG" >&2; exit $rc' ERR
 
-phase() { PHASE=$1; printf '%-16s' "$1:"; }
+phase() { PHASE=$1; printf '%-17s' "$1:"; }
 quiet() { echo "+ $*" >>"$LOG"; "$@" >>"$LOG" 2>&1; }
 
 phase "system packages"
@@ -35,14 +35,17 @@ fi
 phase "venv"
 if [ -x .venv/bin/python ]; then kept=" (kept)"; else kept=""; quiet "$PY" -m venv .venv; fi
 quiet .venv/bin/python -m pip install --upgrade pip
-echo ".venv, $(.venv/bin/python --version)$kept"
+v=$(.venv/bin/python --version)
+echo ".venv, $v$kept"
 
 # torch first, pinned to the CPU build; the project's own range is satisfied by it, so nothing larger is pulled.
 phase "torch"
 if .venv/bin/python -c "import torch" >>"$LOG" 2>&1; then kept=" (kept)"; else kept=""; quiet .venv/bin/python -m pip install "torch==2.13.0"; fi
-echo "$(.venv/bin/python -c 'import torch; print(torch.__version__)')$kept"
+v=$(.venv/bin/python -W ignore -c 'import torch; print(torch.__version__)' 2>>"$LOG")
+echo "$v$kept"
 
 phase "package"
 quiet .venv/bin/python -m pip install -e ".[all,test]"
-echo "$(.venv/bin/repaint-nerf --version) with its extras (diffusion, test)"
+v=$(.venv/bin/repaint-nerf --version 2>>"$LOG")
+echo "$v with its extras (diffusion, test)"
 echo "done: .venv/bin/repaint-nerf opens the editor; the install's full output is in install.log"
