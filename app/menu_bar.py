@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from imgui_bundle import imgui
 
+from repaint_nerf.app.panels.common import remember_item
+
 # (input, what it does), as app.editor's viewport input handles them.
 BINDINGS: tuple[tuple[str, str], ...] = (
     ("left drag", "orbit the camera (Navigate tool)"),
@@ -28,7 +30,9 @@ def draw(app) -> float:
     if imgui.begin_menu("Help"):
         _help_items(app)
         imgui.end_menu()
-    app.cache.setdefault("items", {})["help_menu"] = _item_rect()
+    else:
+        remember_item(app, "help_menu")
+        imgui.set_item_tooltip("keys and mouse bindings; the first-steps hints")
     hint = app.guide.hint()
     if hint is not None:
         imgui.separator()
@@ -53,13 +57,9 @@ def _help_items(app) -> None:
     guide = app.guide
     if imgui.menu_item("Show the first-steps hints again", "", False)[0]:
         guide.reset()
+    remember_item(app, "help_reset")
     imgui.set_item_tooltip("start the hint line over from the first step")
     if imgui.menu_item("Hide the first-steps hints", "", guide.hidden)[0]:
         guide.set_hidden(not guide.hidden)
     imgui.set_item_tooltip("hide (or show) the hint line in the menu bar")
     imgui.text_disabled("Every command and model path: README.md; `repaint-nerf --help`")
-
-
-def _item_rect() -> tuple[float, float, float, float]:
-    a, b = imgui.get_item_rect_min(), imgui.get_item_rect_max()
-    return a.x, a.y, b.x, b.y
