@@ -10,6 +10,7 @@ import os
 import cv2
 import pytest
 
+from real_editor import pretrain, real_editor
 from test_gui_editor import click, drag, frames, full_frame, run_until
 
 pytestmark = [pytest.mark.gui, pytest.mark.timeout(600)]
@@ -19,25 +20,13 @@ PRETRAIN_STEPS = 100
 
 @pytest.fixture()
 def editor(xvfb_display, scene_factory, tmp_path, monkeypatch):
-    from repaint_nerf.app.editor import EditorApp
     from repaint_nerf.app.user_settings import ENV
-    from repaint_nerf.app.window import Window
-    from repaint_nerf.core.engine import Engine
 
     monkeypatch.setenv(ENV, str(tmp_path / "config"))  # a user who has never opened the editor
-    path = scene_factory("demo", size=32, views=8, test_views=2)
-    ws = str(tmp_path / "ws")
-    pre = Engine("cpu")  # a short reconstruction first, headless, so that a patch selects an object, not fog
-    pre.load(str(path), ws)
-    while pre.trainer.step_count < PRETRAIN_STEPS:
-        pre.train_for(1.0)
-    pre.save()
-    window = Window(width=900, height=900)
-    app = EditorApp(window, Engine("cpu"), str(path), ws,
-                    worker_kwargs={"train_budget_s": 0.2, "rest_s": 0.05, "preview_interval_s": 0.5})
-    yield app
-    app.close()
-    window.close()
+    path, ws = str(scene_factory("demo", size=32, views=8, test_views=2)), str(tmp_path / "ws")
+    pretrain(path, ws, PRETRAIN_STEPS)  # so that a patch selects an object, not fog
+    with real_editor(path, ws, 900, 900, train_budget_s=0.2) as app:
+        yield app
 
 
 def _shot(app, artifacts_dir, name: str) -> None:
@@ -60,6 +49,7 @@ def _type(app, text: str) -> None:
     frames(app, 2, lambda io: io.add_key_event(imgui.Key.enter, False))
 
 
+@pytest.mark.slow  # a short headless reconstruction first
 def test_the_first_edit_follows_the_hints(editor, artifacts_dir, tmp_path):
     app, s = editor, editor.state
     run_until(app, lambda: s.scene_info.get("loaded") and full_frame(app), timeout=180)
