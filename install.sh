@@ -9,7 +9,7 @@ PY=${PYTHON:-python3.11}
 LOG="$PWD/install.log"
 : >"$LOG"
 PHASE="start"
-trap 'rc=$?; echo "install.sh: the \"$PHASE\" phase failed (exit $rc). Its last lines (all of it: $LOG):" >&2
+trap 'rc=$?; echo "failed"; echo "install.sh: the \"$PHASE\" phase failed (exit $rc). Its last lines (all of it: $LOG):" >&2
       tail -n 30 "$LOG" >&2; exit $rc' ERR
 
 phase() { PHASE=$1; printf '%-17s' "$1:"; }
