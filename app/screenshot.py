@@ -23,12 +23,12 @@ import numpy as np
 PICTURES = {
     "walkthrough_1_open.png": "the demo scene a few seconds after opening: the field is still forming",
     "walkthrough_2_train.png": "trained: the PSNR curve has flattened and the view is sharp",
-    "walkthrough_3_patch.png": "a patch being dragged over the yellow block with the Select patch tool",
+    "walkthrough_3_patch.png": "a patch being dragged over the block in the middle with the Select patch tool",
     "screenshot.png": "the selection: the block in every view, at its automatic threshold (the README's top)",
-    "walkthrough_5_threshold.png": "the threshold slider: lower selects more, higher less",
-    "walkthrough_6_repaint.png": "after Repaint with the prompt 'make it blue' (offline guidance)",
-    "walkthrough_7_compare.png": "the versions compared with Undo and Redo",
-    "walkthrough_8_export.png": "the exported mesh, as trimesh and matplotlib draw the file",
+    "walkthrough_4_threshold.png": "the threshold slider: lower selects more, higher less",
+    "walkthrough_5_repaint.png": "after Repaint with the prompt 'make it blue' (offline guidance)",
+    "walkthrough_6_compare.png": "the versions compared with Undo and Redo",
+    "walkthrough_7_export.png": "the exported mesh, as trimesh and matplotlib draw the file",
 }
 
 
@@ -123,8 +123,8 @@ def _walkthrough(app, args, out: Path, tmp: Path) -> None:
     def shot(name: str) -> np.ndarray:
         return _shot(app, out / name)
 
-    _until(app, lambda: s.scene_info.get("loaded") and app.camera is not None, 600)
-    app.set_training(False)  # still pictures of the trained field (its saved curve is plotted)
+    _until(app, lambda: s.scene_info.get("loaded") and s.last_status, 600)  # a step in the window: its status line
+    app.set_training(False)  # still pictures of the trained field from here (its saved curve is plotted)
     _until(app, lambda: _sharp(app), 300)
     shot("walkthrough_2_train.png")
 
@@ -144,35 +144,35 @@ def _walkthrough(app, args, out: Path, tmp: Path) -> None:
         crops.append(_viewport(app, app.frame(capture=True)))
     save_png(side_by_side(crops, [f"threshold {t:.2f}" + (" (automatic)" if t == auto else "")
                                   for t in (max(0.0, auto - 0.15), auto, min(1.0, auto + 0.1))]),
-             out / "walkthrough_5_threshold.png")
+             out / "walkthrough_4_threshold.png")
     s.threshold = auto
     app.guide.done("threshold")
 
     s.tool, s.view_mode = "navigate", "rgb"
     s.prompt, s.backend, s.repaint_config.steps = args.prompt, "offline", args.repaint_steps
     app.start_repaint()
-    _until(app, lambda: s.repaint_running, 120)
+    _until(app, lambda: s.repaint_running, 900)  # masks for every view first: minutes on a busy CPU
     _until(app, lambda: not s.repaint_running, 900)
     app.set_training(False)
     _refreshed(app)
-    edited = shot("walkthrough_6_repaint.png")
+    edited = shot("walkthrough_5_repaint.png")
 
-    app.call(app.engine.undo)
-    _until(app, lambda: any(e[1] == "reply:undo" for e in app.events[-20:]), 60)
-    _refreshed(app)
-    before = _viewport(app, app.frame(capture=True))
-    app.call(app.engine.redo)
-    _until(app, lambda: any(e[1] == "reply:redo" for e in app.events[-20:]), 60)
-    _refreshed(app)
+    for name in ("undo", "redo"):
+        n = len(app.events)
+        app.call(getattr(app.engine, name))
+        _until(app, lambda: any(e[1] == f"reply:{name}" for e in app.events[n:]), 300)
+        _refreshed(app)
+        if name == "undo":
+            before = _viewport(app, app.frame(capture=True))
     save_png(side_by_side([before, _viewport(app, edited)], ["version 1: the photos' scene",
                                                             f"version 2: '{args.prompt}'"]),
-             out / "walkthrough_7_compare.png")
+             out / "walkthrough_6_compare.png")
 
     mesh = tmp / "mesh.glb"
     app.start_export(app.engine.export_mesh, str(mesh), resolution=int(args.mesh_resolution))
     _until(app, lambda: s.export_job is None and mesh.is_file(), 900)
-    render_mesh(mesh, out / "walkthrough_8_export.png")
-    print(f"wrote {out / 'walkthrough_8_export.png'}")
+    render_mesh(mesh, out / "walkthrough_7_export.png")
+    print(f"wrote {out / 'walkthrough_7_export.png'}")
 
 
 def _drag_patch(app, patch: tuple[float, ...], mid_drag: Callable[[], object]) -> None:
