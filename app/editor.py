@@ -130,7 +130,7 @@ class EditorApp:
         """Video frames: the viewport's aspect at most `state.video_height` pixels high, even sizes (H.264 4:2:0)."""
         w, h = self.view_size
         k = min(1.0, self.state.video_height / max(h, 1))
-        return max(2, int(w * k) // 2 * 2), max(2, int(h * k) // 2 * 2)
+        return max(2, round(w * k) // 2 * 2), max(2, round(h * k) // 2 * 2)  # round: 941 * (64 / 941) is 63.99
 
     def _orbit_cameras(self, frames: int) -> list:
         cam = CameraControl(**{k: getattr(self.camera, k) for k in ("target", "distance", "yaw", "pitch", "fov_y", "up")})
