@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if getattr(args, "_run", None) is None:
         args = parser.parse_args(["open", *argv])
+    args._argv = list(argv)  # the command line as typed (a bench records it in its JSON)
     try:
         return int(args._run(args) or 0)
     except UserError as exc:

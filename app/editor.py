@@ -16,13 +16,16 @@ from typing import Any, Callable
 import numpy as np
 from imgui_bundle import imgui
 
+from repaint_nerf.app import menu_bar
 from repaint_nerf.app.camera_control import CameraControl
+from repaint_nerf.app.guide import Guide
 from repaint_nerf.app.panels import repaint as repaint_panel
 from repaint_nerf.app.panels import scene as scene_panel
 from repaint_nerf.app.panels import selection as selection_panel
 from repaint_nerf.app.panels import export as export_panel
 from repaint_nerf.app.panels import view as view_panel
 from repaint_nerf.app.state import EditorState, ExportJob, TrainingHistory
+from repaint_nerf.app.user_settings import UserSettings
 from repaint_nerf.app.viewport import Viewport
 from repaint_nerf.app.window import Window
 from repaint_nerf.app.worker import Crashed, Frame, Reply, Status, Worker
@@ -74,6 +77,7 @@ class EditorApp:
         self.drag_start: tuple[float, float] | None = None
         self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
         self.events: list = []  # (time, what) log for tests and the viewport benchmark
+        self.guide = Guide(UserSettings())  # the first-run hint line (app.menu_bar draws it)
         self.open_scene(path)
 
     # ---- actions (called by panels and input)
@@ -136,7 +140,7 @@ class EditorApp:
         """Video frames: the viewport's aspect at most `state.video_height` pixels high, even sizes (H.264 4:2:0)."""
         w, h = self.view_size
         k = min(1.0, self.state.video_height / max(h, 1))
-        return max(2, int(w * k) // 2 * 2), max(2, int(h * k) // 2 * 2)
+        return max(2, round(w * k) // 2 * 2), max(2, round(h * k) // 2 * 2)  # round: 941 * (64 / 941) is 63.99
 
     def _orbit_cameras(self, frames: int) -> list:
         cam = CameraControl(**{k: getattr(self.camera, k) for k in ("target", "distance", "yaw", "pitch", "fov_y", "up")})
@@ -225,6 +229,7 @@ class EditorApp:
             elif msg.name in ("select", "select_text"):
                 s.selection_busy = False
                 s.has_selection = True
+                self.guide.done("select")
                 if msg.name == "select":  # a PatchSelected: the map and its automatic threshold
                     self.viewport.upload_similarity(msg.value.similarity)
                     selection_panel.take_auto_threshold(s, msg.value.auto_threshold)
@@ -235,17 +240,23 @@ class EditorApp:
             elif msg.name == "masks_for_all_views":
                 s.masks_done = int(msg.value)
             elif msg.name == "repaint":
+                self.guide.done("repaint")
                 s.repaint_running = True
                 s.training = True
                 self.worker.set_training(True)
             elif msg.name in EXPORTS or msg.name in ("export_png", "save"):
                 s.say(export_message(msg.value))
+                if msg.name != "save":
+                    self.guide.done("export")
             elif msg.name == "repair":
                 for line in msg.value or ["nothing was damaged"]:
                     s.say(f"repair: {line}")
                 self.open_scene(self._opened)
-            elif msg.name in ("undo", "redo") and not msg.value:
-                s.say(f"nothing to {msg.name}")
+            elif msg.name in ("undo", "redo"):
+                if msg.value:
+                    self.guide.done("compare")
+                else:
+                    s.say(f"nothing to {msg.name}")
             if msg.name in MODEL_CHANGING:
                 self.worker.refresh()
         elif isinstance(msg, Crashed):
@@ -287,6 +298,8 @@ class EditorApp:
             d = io.mouse_delta
             if imgui.is_mouse_dragging(imgui.MouseButton_.left, 0.0) and not select_tool:
                 cam.orbit(d.x, d.y)
+                if d.x or d.y:
+                    self.guide.done("orbit")
             if imgui.is_mouse_dragging(imgui.MouseButton_.right, 0.0):
                 cam.orbit(d.x, d.y) if select_tool else cam.pan(d.x, d.y, self.view_size[1])
             if imgui.is_mouse_dragging(imgui.MouseButton_.middle, 0.0):
@@ -311,8 +324,8 @@ class EditorApp:
             if imgui.is_key_pressed(keys.r):
                 cam.reset()
 
-    def _draw_viewport(self, width: float, height: float) -> None:
-        imgui.set_next_window_pos(imgui.ImVec2(0, 0))
+    def _draw_viewport(self, top: float, width: float, height: float) -> None:
+        imgui.set_next_window_pos(imgui.ImVec2(0, top))
         imgui.set_next_window_size(imgui.ImVec2(width, height))
         flags = (imgui.WindowFlags_.no_title_bar | imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
                  | imgui.WindowFlags_.no_scrollbar | imgui.WindowFlags_.no_bring_to_front_on_focus
@@ -346,8 +359,8 @@ class EditorApp:
         imgui.end()
         imgui.pop_style_var()
 
-    def _draw_panels(self, x: float, width: float, height: float) -> None:
-        imgui.set_next_window_pos(imgui.ImVec2(x, 0))
+    def _draw_panels(self, x: float, top: float, width: float, height: float) -> None:
+        imgui.set_next_window_pos(imgui.ImVec2(x, top))
         imgui.set_next_window_size(imgui.ImVec2(width, height))
         imgui.begin("Editor", None, imgui.WindowFlags_.no_resize | imgui.WindowFlags_.no_move
                     | imgui.WindowFlags_.no_collapse)
@@ -405,9 +418,10 @@ class EditorApp:
                         or imgui.is_any_item_active() or self.drag_start is not None)
         w, h = self.window.framebuffer_size()
         panel_w = min(PANEL_WIDTH, max(w // 3, 200))
-        self._draw_viewport(w - panel_w, h)
+        top = menu_bar.draw(self)
+        self._draw_viewport(top, w - panel_w, h - top)
         self._request_view()  # before the panels and the draw: the worker starts on a camera move at once
-        self._draw_panels(w - panel_w, panel_w, h)
+        self._draw_panels(w - panel_w, top, panel_w, h - top)
         self._request_view()  # a panel changed the view (snap, reset, field of view, view mode, tool)
         present = capture or self._worth_drawing(msgs)  # a screenshot is always drawn
         shot = self.window.end_frame(capture=capture, present=present, clear=not self._covered)

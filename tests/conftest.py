@@ -2,11 +2,14 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import pytest
 
 os.environ.setdefault("REPAINT_NERF_DEVICE", "cpu")
+# The editor remembers per user which first-run hints were followed: tests never read or write the real ones.
+os.environ["REPAINT_NERF_CONFIG_DIR"] = tempfile.mkdtemp(prefix="repaint-nerf-test-config-")
 ARTIFACTS = Path(__file__).parent / "artifacts"
 
 

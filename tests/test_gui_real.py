@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from real_editor import pretrain, real_editor
 from test_gui_editor import click, drag, frames, full_frame, run_until, view_pixels
 
 pytestmark = [pytest.mark.gui, pytest.mark.slow, pytest.mark.timeout(600)]  # setup pre-trains: ~40 s idle
@@ -20,25 +21,13 @@ PRETRAIN_STEPS = 300
 
 @pytest.fixture(scope="module")
 def editor(xvfb_display, scene_factory, tmp_path_factory):
-    from repaint_nerf.app.editor import EditorApp
-    from repaint_nerf.app.window import Window
-    from repaint_nerf.core.engine import Engine
-
-    path = scene_factory("demo", size=48, views=16, test_views=2)
+    path = str(scene_factory("demo", size=48, views=16, test_views=2))
     ws = str(tmp_path_factory.mktemp("ws") / "ws")
-    # Reconstruct headlessly first (300 steps, the feature field needs them to separate the objects), so
-    # the GUI steps below never wait on how fast a loaded machine trains; the editor resumes from here.
-    pre = Engine("cpu")
-    pre.load(str(path), ws)
-    while pre.trainer.step_count < PRETRAIN_STEPS:
-        pre.train_for(1.0)
-    pre.save()
-    window = Window(width=640, height=900)
-    app = EditorApp(window, Engine("cpu"), str(path), ws,
-                    worker_kwargs={"train_budget_s": 0.3, "rest_s": 0.05, "preview_interval_s": 0.5})
-    yield app
-    app.close()
-    window.close()
+    # Reconstruct headlessly first (300 steps, the feature field needs them to separate the objects); the editor
+    # resumes from there.
+    pretrain(path, ws, PRETRAIN_STEPS)
+    with real_editor(path, ws, 640, 900, train_budget_s=0.3) as app:
+        yield app
 
 
 def save(shot, artifacts_dir, name):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+from pathlib import Path
 
 NAME = "bench"
 HELP = "run a benchmark (recon, mask, edit, sdcost, viewport, ...) and write its figures as JSON (and PNG)"
@@ -32,4 +33,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    return args._bench_run(args)
+    rc = args._bench_run(args)
+    if rc == 0 and getattr(args, "json", None):
+        stamp(Path(args.json), getattr(args, "_argv", None) or ["bench", args.bench, "--json", args.json])
+    return rc
+
+
+def stamp(path: Path, argv: list[str]) -> None:
+    """Record in the bench's JSON the day it was measured and the command line that measured it (the generated
+    docs quote both: `repaint-nerf docs`). A file the bench did not write as a JSON object is left alone."""
+    import datetime as dt
+    import json
+    import shlex
+
+    from repaint_nerf.core.workspace import atomic
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    if isinstance(data, dict):
+        data["measured"] = dt.datetime.now(dt.timezone.utc).date().isoformat()
+        data["command"] = "repaint-nerf " + " ".join(shlex.quote(a) for a in argv)
+        atomic.write_json(path, data)

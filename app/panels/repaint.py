@@ -62,13 +62,21 @@ def _estimate(app) -> str:
 
 def draw(app) -> None:
     s = app.state
-    if not imgui.collapsing_header("Repaint", imgui.TreeNodeFlags_.default_open.value):
+    opened = imgui.collapsing_header("Repaint", imgui.TreeNodeFlags_.default_open.value)
+    imgui.set_item_tooltip("regenerate the selection from a prompt; the rest of the scene is held to the photos")
+    if not opened:
         return
     _, s.prompt = imgui.input_text("Prompt", s.prompt)
     remember_item(app, "prompt")
+    imgui.set_item_tooltip("what the selection should become, e.g. 'a blue rose' (offline guidance reads a "
+                           "colour, or 'remove')")
     _, s.bg_prompt = imgui.input_text("Background prompt", s.bg_prompt)
     remember_item(app, "bg_prompt")
-    if imgui.begin_combo("Guidance", s.backend):
+    imgui.set_item_tooltip("what surrounds it, e.g. 'leaves' (Stable Diffusion's CLIP background loss)")
+    if not imgui.begin_combo("Guidance", s.backend):
+        spec = registry.GUIDANCES.get(s.backend)
+        imgui.set_item_tooltip(f"what edits the selection: {spec.help}" if spec else "what edits the selection")
+    else:
         for spec in registry.GUIDANCES.values():
             if spec.needs_edited and not s.scene_info.get("has_edited"):
                 continue
@@ -81,11 +89,12 @@ def draw(app) -> None:
     changed, weight = imgui.input_float("CLIP weight", registry.clip_weight(s.backend, cfg), format="%.4g")
     if changed:  # until edited, the guidance's default (paper Eq. clip; 0.01 with Stable Diffusion)
         cfg.lambda_clip = max(0.0, weight)
-    if imgui.is_item_hovered():
-        imgui.set_tooltip("weight of the CLIP loss that pulls the rest toward the background prompt (0: no CLIP)")
+    imgui.set_item_tooltip("weight of the CLIP loss that pulls the rest toward the background prompt (0: no CLIP)")
     for kind in registry.models_needed(s.backend, cfg):
         attr = f"{kind}_path"
         _, val = imgui.input_text(f"{kind.upper()} model folder", getattr(s, attr))
+        imgui.set_item_tooltip(f"a local {kind.upper()} model (folder, file or cached model id); README: "
+                               "Where models go")
         setattr(s, attr, val)
         msg = _model_status(app, kind, val)
         if msg is None:
@@ -95,7 +104,9 @@ def draw(app) -> None:
             if imgui.is_item_hovered():
                 imgui.set_tooltip(msg)
     _, cfg.lambda_unmask = imgui.input_float("lambda_unmask", cfg.lambda_unmask)
+    imgui.set_item_tooltip("how hard the unselected pixels are held to the original photos (paper Eq. unmask)")
     _, cfg.steps = imgui.input_int("Steps", cfg.steps)
+    imgui.set_item_tooltip("edit steps; more is slower and closer to the prompt (the estimate below follows)")
     if unavailable(app, "repaint"):
         return
     if not s.repaint_running:
@@ -103,6 +114,8 @@ def draw(app) -> None:
         if imgui.button("Repaint##start"):  # the header is also "Repaint": a distinct id
             app.start_repaint()
         remember_item(app, "repaint")
+        imgui.set_item_tooltip("edit the selection toward the prompt; the view previews it, and the result is "
+                               "a new version (Undo returns to the one before)")
     else:
         st = s.last_status
         done = float(st.get("step", 0)) / max(1, st.get("steps", cfg.steps)) if st.get("phase") == "repaint" else 0.0
@@ -110,13 +123,18 @@ def draw(app) -> None:
         imgui.text(f"step {st.get('step', 0)}/{st.get('steps', cfg.steps)}, {format_duration(st.get('eta_s'))} left")
         if imgui.button("Resume" if not s.training else "Pause"):
             app.set_training(not s.training)
+        imgui.set_item_tooltip("pause the edit (the view stays live) or resume it")
         imgui.same_line()
         if imgui.button("Cancel"):
             app.call(app.engine.cancel)
             s.repaint_running = False
+        imgui.set_item_tooltip("stop the edit and keep the version from before it")
     if imgui.button("Undo"):
         app.call(app.engine.undo)
     remember_item(app, "undo")
+    imgui.set_item_tooltip("back to the previous version of the scene (compare before and after)")
     imgui.same_line()
     if imgui.button("Redo"):
         app.call(app.engine.redo)
+    remember_item(app, "redo")
+    imgui.set_item_tooltip("forward to the next version again")

@@ -9,13 +9,21 @@ from repaint_nerf.app.panels.common import remember_item, unavailable
 
 def draw(app) -> None:
     s = app.state
-    if not imgui.collapsing_header("Scene and training", imgui.TreeNodeFlags_.default_open.value):
+    opened = imgui.collapsing_header("Scene and training", imgui.TreeNodeFlags_.default_open.value)
+    imgui.set_item_tooltip("open a scene and watch it reconstruct (test PSNR rises as it trains)")
+    if not opened:
         return
     _, s.scene_path = imgui.input_text("Path", s.scene_path)
-    if imgui.button("Open"):
+    imgui.set_item_tooltip("a folder of photos, a NeRF dataset (Blender, nerfstudio, LLFF, COLMAP) or a saved "
+                           "workspace; then press Open")
+    opened = imgui.button("Open")
+    imgui.set_item_tooltip("open the scene at Path (a photo folder is posed by structure from motion first)")
+    if opened:
         app.open_scene(s.scene_path or None)
     imgui.same_line()
-    if imgui.button("Demo scene"):
+    demo = imgui.button("Demo scene")
+    imgui.set_item_tooltip("the built-in synthetic scene: needs no photos and no downloaded model")
+    if demo:
         app.open_scene(None)
     unavailable(app, "load")
     if s.repair_offer:
@@ -30,6 +38,7 @@ def draw(app) -> None:
     if unavailable(app, "train"):
         return
     changed, s.training = imgui.checkbox("Train", s.training)
+    imgui.set_item_tooltip("train the field in the background (off: pause it and give the CPU to the view)")
     if changed:
         app.set_training(s.training)
     st = s.last_status
@@ -44,15 +53,23 @@ def draw(app) -> None:
         implot.plot_line("PSNR", xs, np.asarray(h.psnr, dtype=np.float64))
         implot.plot_line("loss x100", xs, np.asarray(h.loss, dtype=np.float64) * 100.0)
         implot.end_plot()
-    if imgui.button("Save project"):
+    save = imgui.button("Save project")
+    imgui.set_item_tooltip("save the workspace (field, selection, versions) so that Open resumes it")
+    if save:
         app.call(app.engine.save)
     _, s.export_path = imgui.input_text("PNG", s.export_path)
+    imgui.set_item_tooltip("the PNG file Export view writes")
     imgui.same_line()
-    if imgui.button("Export view"):
+    png = imgui.button("Export view")
+    imgui.set_item_tooltip("save the current view, at the view's size, as the PNG above")
+    if png:
         app.export_png(s.export_path)
     _, s.video_path = imgui.input_text("Video", s.video_path)
+    imgui.set_item_tooltip("the .mp4 (or .gif) file Turntable writes")
     imgui.same_line()
-    if imgui.button("Turntable"):
+    turn = imgui.button("Turntable")
+    imgui.set_item_tooltip("a video orbiting the scene once around the current target")
+    if turn:
         app.export_turntable(s.video_path)
 
 
