@@ -78,9 +78,13 @@ def _repair_offer(app) -> None:
     imgui.text_colored(imgui.ImVec4(1.0, 0.55, 0.3, 1.0), "This workspace is damaged.")
     imgui.text_wrapped("Repair sets damaged files aside in its damaged/ folder (nothing is deleted), rebuilds "
                        "its index and settings, and keeps every good version.")
-    if imgui.button("Repair workspace"):
-        app.repair_workspace()
+    repair = imgui.button("Repair workspace")
     remember_item(app, "Repair workspace")
+    imgui.set_item_tooltip("set damaged files aside, rebuild the index and settings, keep every good version, reopen")
+    if repair:
+        app.repair_workspace()
     imgui.same_line()
-    if imgui.button("Not now"):
+    later = imgui.button("Not now")
+    imgui.set_item_tooltip("leave the workspace as it is (repair it later with: repaint-nerf repair WS)")
+    if later:
         app.state.repair_offer = None
