@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper)")
     p.add_argument("--max-samples", type=int, default=None,
-                   help="samples across the field cube's diagonal (default: 2 per pixel of the images, 128..1024)")
+                   help="steps across the field cube's diagonal (default: 2 per pixel of the images, 128..256; a long run may ask 512 or 1024)")
     p.add_argument("--no-features", action="store_true",
                    help="skip the semantic feature field (faster; the workspace then cannot be selected in)")
     p.add_argument("--no-depth", action="store_true", help="skip the sparse depth priors")
