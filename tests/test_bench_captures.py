@@ -165,3 +165,27 @@ def test_eval_times_hold_the_first_minute_and_the_report_times():
     curve = [{"target": x, "psnr": x / 10} for x in t]
     at = at_times(curve, (60.0, 120.0, 600.0))
     assert at["60"]["psnr"] == 6.0 and at["120"]["psnr"] == 12.0 and at["600"] is None
+
+
+# ------------------------------------------------------------------ the nerfacto harness (no nerfstudio needed)
+
+
+def test_nerfacto_dataset_holds_the_same_views_and_split_as_bench_recon(tmp_path):
+    from repaint_nerf.core.bench.nerfacto import export_scene, train_command
+
+    write_llff(tmp_path / "cap", _forward_poses(10), h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (10, 1)))
+    scene = load_scene(tmp_path / "cap")
+    meta = export_scene(scene, tmp_path / "ns")
+    assert len(meta["test_filenames"]) == 2 and meta["val_filenames"] == meta["test_filenames"]
+    assert len(meta["train_filenames"]) == 8 and all((tmp_path / "ns" / f["file_path"]).is_file()
+                                                      for f in meta["frames"])
+    assert meta["frames"][0]["fl_x"] == 14.0 and meta["frames"][0]["w"] == 16
+    cmd = train_command(Path("/venv/bin"), tmp_path / "ns", tmp_path / "out", 25)
+    assert cmd[1] == "nerfacto" and "cpu" in cmd and cmd[cmd.index("--data") + 1] == str(tmp_path / "ns")
+
+
+def test_nerfacto_without_nerfstudio_says_how_to_install_it(tmp_path):
+    from repaint_nerf.core.bench.nerfacto import measure
+
+    with pytest.raises(UserError, match="no ns-train"):
+        measure(tmp_path, 10, tmp_path / "no-venv", tmp_path / "work")
