@@ -27,6 +27,27 @@ CPU_OPTIONS = ("--machine.device-type", "cpu", "--machine.num-devices", "1",
                "--vis", "tensorboard")
 
 
+# nerfacto builds LPIPS (torchmetrics, AlexNet weights fetched from the internet at model construction); with no
+# internet that stops ns-train and ns-eval before the first step. PSNR and SSIM need no LPIPS: run nerfstudio's
+# entry points with LPIPS replaced by a stub that returns NaN.
+NO_LPIPS = (
+    "import importlib, sys, torch, torchmetrics.image.lpip as m\n"
+    "class NoLPIPS(torch.nn.Module):\n"
+    "    def __init__(self, *a, **k):\n"
+    "        super().__init__()\n"
+    "    def forward(self, a, b):\n"
+    "        return torch.tensor(float('nan'))\n"
+    "m.LearnedPerceptualImagePatchSimilarity = NoLPIPS\n"
+    "mod, fn = sys.argv.pop(1).split(':')\n"
+    "sys.argv[0] = mod\n"
+    "getattr(importlib.import_module(mod), fn)()\n")
+
+
+def ns_command(ns_bin: Path, entry: str) -> list[str]:
+    """The command that runs nerfstudio's `entry` (module:function) from its venv, without LPIPS."""
+    return [str(ns_bin / "python"), "-c", NO_LPIPS, entry]
+
+
 def export_scene(scene, out: Path) -> dict:
     """Write a loaded `Scene`'s train and test views as a nerfstudio dataset in `out` (PNG images as loaded,
     pinhole intrinsics, OpenGL camera-to-world poses in world units, explicit split lists); returns the JSON."""
@@ -55,7 +76,7 @@ def export_scene(scene, out: Path) -> dict:
 
 def train_command(ns_bin: Path, data: Path, out: Path, steps_per_save: int) -> list[str]:
     """The `ns-train nerfacto` command line, reduced for CPU, keeping every checkpoint."""
-    return [str(ns_bin / "ns-train"), "nerfacto", "--output-dir", str(out), "--experiment-name", "bench",
+    return [*ns_command(ns_bin, "nerfstudio.scripts.train:entrypoint"), "nerfacto", "--output-dir", str(out), "--experiment-name", "bench",
             "--timestamp", "run", "--max-num-iterations", "1000000", "--steps-per-save", str(steps_per_save),
             "--save-only-latest-checkpoint", "False", "--steps-per-eval-image", "1000000",
             "--steps-per-eval-batch", "1000000", "--steps-per-eval-all-images", "1000000", *CPU_OPTIONS,
@@ -94,7 +115,7 @@ def evaluate_step(ns_bin: Path, run_dir: Path, step: int, out_json: Path) -> dic
     cfg = (run_dir / "config.yml").read_text()
     pinned = run_dir / f"config-step-{step}.yml"
     pinned.write_text(re.sub(r"(?m)^load_step: .*$", f"load_step: {step}", cfg))
-    r = subprocess.run([str(ns_bin / "ns-eval"), "--load-config", str(pinned), "--output-path", str(out_json)],
+    r = subprocess.run([*ns_command(ns_bin, "nerfstudio.scripts.eval:entrypoint"), "--load-config", str(pinned), "--output-path", str(out_json)],
                        capture_output=True, text=True)
     if r.returncode != 0 or not out_json.is_file():
         return {"error": (r.stderr or r.stdout).strip().splitlines()[-1:] or ["ns-eval failed"]}
