@@ -29,7 +29,8 @@ CPU_OPTIONS = ("--machine.device-type", "cpu", "--machine.num-devices", "1",
 
 # nerfacto builds LPIPS (torchmetrics, AlexNet weights fetched from the internet at model construction); with no
 # internet that stops ns-train and ns-eval before the first step. PSNR and SSIM need no LPIPS: run nerfstudio's
-# entry points with LPIPS replaced by a stub that returns NaN.
+# entry points with LPIPS replaced by a stub that returns NaN. torch >= 2.6 loads only plain tensors by default, and
+# nerfstudio's checkpoints hold numpy scalars: ns-eval loads them with weights_only=False (our own run's files).
 NO_LPIPS = (
     "import importlib, sys, torch, torchmetrics.image.lpip as m\n"
     "class NoLPIPS(torch.nn.Module):\n"
@@ -38,6 +39,11 @@ NO_LPIPS = (
     "    def forward(self, a, b):\n"
     "        return torch.tensor(float('nan'))\n"
     "m.LearnedPerceptualImagePatchSimilarity = NoLPIPS\n"
+    "_load = torch.load\n"
+    "def load(*a, **k):\n"
+    "    k.setdefault('weights_only', False)\n"
+    "    return _load(*a, **k)\n"
+    "torch.load = load\n"
     "mod, fn = sys.argv.pop(1).split(':')\n"
     "sys.argv[0] = mod\n"
     "getattr(importlib.import_module(mod), fn)()\n")
