@@ -6,7 +6,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from repaint_nerf.core.bench.recon import NERFACTO, TARGET_PSNR, measure
+from repaint_nerf.core.bench.recon import NERFACTO, REPORT_AT, TARGET_PSNR, measure
 
 HELP = "reconstruction speed: test PSNR against seconds, render time, samples per ray, step-time breakdown"
 
@@ -19,7 +19,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--test-views", type=int, default=20, help="generated test views")
     p.add_argument("--downscale", type=float, default=1.0)
     p.add_argument("--seconds", type=float, default=60.0, help="training time budget (evaluation not counted)")
-    p.add_argument("--evals", type=int, default=12, help="test evaluations along the run")
+    p.add_argument("--evals", type=int, default=12, help="evenly spaced test evaluations along the run")
+    p.add_argument("--report-at", default=",".join(f"{t:g}" for t in REPORT_AT),
+                   help="training seconds at which to report test PSNR and SSIM (comma-separated)")
+    p.add_argument("--no-minute-curve", action="store_true",
+                   help="skip the first-minute curve (evaluations at 10, 20, ..., 60 s)")
+    p.add_argument("--holdout-every", type=int, default=None,
+                   help="a capture without its own test split holds out views 0, N, 2N, ... (default 8, as "
+                        "nerfstudio and instant-ngp); synthetic scenes keep their test split")
     p.add_argument("--eval-views", type=int, default=None, help="test views per evaluation (default: all)")
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
     p.add_argument("--lr", type=float, default=None)
@@ -54,12 +61,27 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def report_times(text: str) -> tuple[float, ...]:
+    """--report-at "60,120,300" as positive seconds; a clear error otherwise."""
+    from repaint_nerf.core.errors import UserError
+
+    try:
+        times = tuple(float(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        times = ()
+    if not times or any(not t > 0 for t in times):
+        raise UserError(f"--report-at takes positive training seconds separated by commas, got {text!r}",
+                        hint="e.g. --report-at 60,120,300")
+    return times
+
+
 def run(args: argparse.Namespace) -> int:
     from repaint_nerf.core.errors import UserError
     from repaint_nerf.core.workspace import atomic
 
     if not args.seconds > 0:
         raise UserError(f"--seconds must be positive, got {args.seconds}")
+    report_at = report_times(args.report_at)
     tmp = None
     if args.scene:
         scene_path = Path(args.scene)
@@ -79,7 +101,8 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         result = measure(scene_path, args.seconds, args.evals, args.eval_views, args.rays, args.lr, args.seed,
-                         args.profile_steps, args.downscale, args.device, progress)
+                         args.profile_steps, args.downscale, args.device, progress, args.holdout_every, report_at,
+                         not args.no_minute_curve)
         result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
         out = Path(args.json)
         atomic.write_json(out, result)
@@ -89,6 +112,12 @@ def run(args: argparse.Namespace) -> int:
         if tmp is not None:
             tmp.cleanup()
     fin, t25, bd = result["final"], result["seconds_to_25_4"], result["breakdown"]
+    ev = result["evaluation"]
+    print(f"held out: {result['scene']['test_views']} {ev['split']} views ({(ev['holdout'] or {}).get('rule')}); "
+          f"{result['scene']['train_views']} trained on; appearance: {ev['appearance']}")
+    for t, pt in result["at"].items():
+        print(f"at {t} s: " + ("beyond the budget" if pt is None else
+                               f"test PSNR {pt['psnr']:.2f} dB, SSIM {pt['ssim']:.4f} (step {pt['step']})"))
     print(f"final: test PSNR {fin['psnr']:.2f} dB, SSIM {fin['ssim']:.4f}, "
           f"{fin['steps']} steps in {fin['seconds']:.1f} s ({result['steps_per_s']:.2f} steps/s)")
     print(f"time to {TARGET_PSNR} dB: " + ("not reached" if t25 is None else f"{t25:.1f} s "

@@ -161,20 +161,53 @@ def time_to(curve: list[dict], target: float) -> float | None:
     return None
 
 
+MINUTE_CURVE = tuple(range(10, 61, 10))  # the first-minute curve: evaluations at 10, 20, ..., 60 training seconds
+REPORT_AT = (60.0, 120.0, 300.0)  # the fixed times issue 32's table reports PSNR and SSIM at
+
+
+def eval_times(seconds: float, evals: int, report_at=REPORT_AT, minute_curve: bool = True) -> list[float]:
+    """The training seconds to evaluate at: `evals` evenly spaced, the first-minute curve and the report times
+    (those within the budget), the end of the run always last."""
+    times = {seconds * k / evals for k in range(1, evals + 1)} | {float(seconds)}
+    times |= {float(t) for t in (MINUTE_CURVE if minute_curve else ()) if t < seconds}
+    times |= {float(t) for t in report_at if 0 < t < seconds}
+    return sorted(times)
+
+
+def at_times(curve: list[dict], report_at) -> dict:
+    """{"60": point, ...}: the curve point evaluated at each report time (None past the run's budget)."""
+    by_target = {p.get("target"): p for p in curve}
+    return {f"{t:g}": by_target.get(float(t)) for t in report_at}
+
+
+def evaluation_protocol(scene, trainer, eval_views: int | None) -> dict:
+    """How held-out views were scored, for the JSON: which split, how it was held out, the appearance code used."""
+    codes = getattr(trainer.field, "appearance", None) is not None
+    return {"split": trainer.eval_split(), "holdout": scene.extra.get("holdout"),
+            "views": "all" if eval_views is None else f"the first {eval_views}",
+            "pixels": "every pixel of each view (full renders), time not counted in training seconds",
+            "appearance": ("the mean code of the training images for every held-out view, as nerfstudio evaluates "
+                           "nerfacto (use_average_appearance_embedding); no code is fitted to a test image")
+            if codes else "no appearance codes (off for this scene)"}
+
+
 def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int | None = None,
             rays: int | None = None, lr: float | None = None, seed: int = 0, profile_steps: int = 8,
             downscale: float = 1.0, device: str | None = None,
-            progress: Callable[[dict], None] | None = None) -> dict:
-    """Train stage 1 from scratch on a scene for `seconds` with `evals` test evaluations along the way; the
-    result dict holds the curve, final PSNR/SSIM, render figures, the breakdown and the nerfacto reference
-    (with its ratios, labelled as figures measured elsewhere). `progress(point)` gets each curve point."""
+            progress: Callable[[dict], None] | None = None, holdout_every: int | None = None,
+            report_at=REPORT_AT, minute_curve: bool = True) -> dict:
+    """Train stage 1 from scratch on a scene for `seconds` with test evaluations along the way (`evals` evenly
+    spaced, the first-minute curve, and PSNR with SSIM at each `report_at` time); the result dict holds the curve,
+    the figures at the report times, final PSNR/SSIM, render figures, the breakdown and the nerfacto reference
+    (with its ratios, labelled as figures measured elsewhere). A capture without its own test split holds out
+    every `holdout_every`-th view (default 8). `progress(point)` gets each curve point."""
     import torch
 
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
-    scene = load_scene(scene_path, downscale)
+    scene = load_scene(scene_path, downscale, holdout_every=holdout_every)
     cfg = TrainConfig(seed=seed)
     if rays:
         cfg.rays_per_batch = rays
@@ -189,10 +222,14 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
     if progress is not None:
         progress(curve[0])
     step_seconds: list[float] = []
-    for k in range(1, evals + 1):
-        trainer.train(seconds=seconds * k / evals, callback=lambda info: step_seconds.append(info["seconds"]))
-        ev = trainer.evaluate(**eval_kw)
-        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]})
+    with_ssim = {float(t) for t in report_at}
+    for target in eval_times(seconds, evals, report_at, minute_curve):
+        trainer.train(seconds=target, callback=lambda info: step_seconds.append(info["seconds"]))
+        ev = trainer.evaluate(**eval_kw, with_ssim=target in with_ssim)
+        point = {"target": target, "seconds": trainer.train_seconds, "step": trainer.step_count, "psnr": ev["psnr"]}
+        if "ssim" in ev:
+            point["ssim"] = ev["ssim"]
+        curve.append(point)
         if progress is not None:
             progress(curve[-1])
     final_ev = trainer.evaluate(with_ssim=True, full=True)
@@ -202,11 +239,16 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
     t25 = time_to(curve, TARGET_PSNR)
     result = {
         "scene": {"path": str(scene_path), "name": Path(scene_path).name, "format": scene.format,
-                  "train_views": len(scene.train), "size": list(scene.train.images[0].shape[:2])},
+                  "kind": scene.kind, "kind_reason": scene.extra.get("kind_reason"),
+                  "train_views": len(scene.train), "test_views": len(scene.split(trainer.eval_split())),
+                  "size": list(scene.train.images[0].shape[:2])},
+        "evaluation": evaluation_protocol(scene, trainer, eval_views),
         "device": describe(trainer.device),
         "train_config": {"rays_per_batch": cfg.rays_per_batch, "lr": cfg.lr, "schedule": cfg.schedule,
                          "seconds": seconds},
         "curve": curve,
+        "at": at_times(curve, report_at),
+        "minute_curve": [p for p in curve if p.get("target") in {float(t) for t in MINUTE_CURVE}],
         "final": {"psnr": final_ev["psnr"], "ssim": final_ev["ssim"], "steps": steps, "seconds": secs,
                   "views": final_ev["views"]},
         "steps_per_s": steps / max(secs, 1e-9),

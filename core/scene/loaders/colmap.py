@@ -15,7 +15,8 @@ import numpy as np
 from repaint_nerf.core.colmap import pycolmap
 from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.cameras import Cameras, opencv_to_opengl
-from repaint_nerf.core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from repaint_nerf.core.scene.loaders.common import (TEST_EVERY, check_pose, every_eighth_split, holdout_note,
+                                                    load_split, wanted)
 from repaint_nerf.core.scene.loaders.images import list_images, read_image
 from repaint_nerf.core.scene.loaders.undistort import undistort_image, undistorted_camera
 from repaint_nerf.core.scene.scene import Scene
@@ -112,8 +113,10 @@ def _image_dir(root: Path, downscale: float) -> Path:
     return root / "images"
 
 
-def load_colmap(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
-    """Load a COLMAP scene folder (with `sparse/0` or `sparse/` and `images/`); `max_size` as in load_split."""
+def load_colmap(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0,
+                holdout_every: int = TEST_EVERY) -> Scene:
+    """Load a COLMAP scene folder (with `sparse/0` or `sparse/` and `images/`); `max_size` as in load_split;
+    every `holdout_every`-th image (by name) is the test split."""
     root = Path(root)
     model = find_model(root)
     if model is None:
@@ -159,7 +162,7 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None, max_size: int =
             cam.rescale(int(img.shape[1]), int(img.shape[0]))
         return undistort_image(img, cam)[0]
 
-    tr, te = every_eighth_split(len(images))
+    tr, te = every_eighth_split(len(images), holdout_every)
     out = {}
     for name, idx in (("train", tr), ("test", te)):
         if idx and wanted(name, splits):
@@ -171,4 +174,5 @@ def load_colmap(root: Path, downscale: float = 1.0, splits=None, max_size: int =
     models = sorted({c.model_name for c in cams})
     return Scene(root=root, format="colmap", splits=out, points=points if len(points) else None,
                  point_colors=colors if len(points) else None,
-                 extra={"model_dir": str(model), "camera_models": models})
+                 extra={"model_dir": str(model), "camera_models": models,
+                        "holdout": holdout_note(holdout_every, "image names sorted")})

@@ -89,12 +89,30 @@ def check_pose(c2w, path: Path, where: str) -> np.ndarray:
     return out
 
 
-def every_eighth_split(n: int) -> tuple[list[int], list[int]]:
-    """(train, test) indices with every 8th image (0, 8, ...) as test; one image goes to train only."""
+def check_holdout_every(every) -> int:
+    """Validate a --holdout-every N (hold out images 0, N, 2N, ...; N >= 2 so that something is trained on)."""
+    try:
+        n = int(every)
+    except (TypeError, ValueError):
+        n = 0
+    if n < 2 or n != every:
+        raise UserError(f"--holdout-every must be a whole number >= 2, got {every!r}",
+                        hint=f"e.g. --holdout-every {TEST_EVERY} (nerfstudio's and instant-ngp's every 8th view)")
+    return n
+
+
+def every_eighth_split(n: int, every: int = TEST_EVERY) -> tuple[list[int], list[int]]:
+    """(train, test) indices with every `every`-th image (0, 8, ...) as test; one image goes to train only."""
     if n < 2:
         return list(range(n)), []
-    test = list(range(0, n, TEST_EVERY))
-    return [i for i in range(n) if i % TEST_EVERY], test
+    test = list(range(0, n, every))
+    return [i for i in range(n) if i % every], test
+
+
+def holdout_note(every: int, order: str) -> dict:
+    """What `Scene.extra['holdout']` says of an every-Nth split: the rule and the order it counts in."""
+    return {"rule": f"every {every}th image held out (index % {every} == 0), not trained on", "every": every,
+            "order": order}
 
 
 def load_split(cameras: Cameras, paths: list[Path], names: list[str], downscale: float,

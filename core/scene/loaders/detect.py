@@ -13,12 +13,13 @@ from pathlib import Path
 from repaint_nerf.core.errors import SceneError, UserError
 from repaint_nerf.core.scene.loaders.blender import is_blender, load_blender
 from repaint_nerf.core.scene.loaders.colmap import find_model, load_colmap
-from repaint_nerf.core.scene.loaders.common import DEFAULT_MAX_SIZE, check_downscale, check_max_size
+from repaint_nerf.core.scene.loaders.common import (DEFAULT_MAX_SIZE, TEST_EVERY, check_downscale,
+                                                    check_holdout_every, check_max_size)
 from repaint_nerf.core.scene.loaders.frame_select import check_sharpness_discard
 from repaint_nerf.core.scene.loaders.images import list_images
 from repaint_nerf.core.scene.loaders.llff import load_llff
 from repaint_nerf.core.scene.loaders.nerfstudio import load_nerfstudio
-from repaint_nerf.core.scene.kinds import choose_kind
+from repaint_nerf.core.scene.kinds import FORWARD_MAX_ANGLE, choose_kind, view_spread_deg
 from repaint_nerf.core.scene.normalize import normalize_scene
 from repaint_nerf.core.scene.scene import SCENE_KINDS, Scene
 
@@ -87,7 +88,7 @@ LOADERS = {"blender": load_blender, "nerfstudio": load_nerfstudio, "llff": load_
 
 def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None, splits=None,
                workspace: str | Path | None = None, max_size: int = DEFAULT_MAX_SIZE,
-               sharpness_discard: float | None = None) -> Scene:
+               sharpness_discard: float | None = None, holdout_every: int | None = None) -> Scene:
     """Load any supported dataset as a `Scene` in world units with `scene.norm` set.
 
     `downscale` divides image width and height (2 = half size); `kind` overrides the scene kind, which
@@ -96,7 +97,9 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     `workspace` is where structure-from-motion on a photo folder caches its result; images whose longest
     side exceeds `max_size` after `downscale` are loaded smaller to fit it (0 = full size), with their
     intrinsics scaled alike; `sharpness_discard` drops blurry frames of transforms JSONs as instant-ngp's
-    `sharpness_discard_threshold` does (None: the file's own threshold, else none; loaders/frame_select.py).
+    `sharpness_discard_threshold` does (None: the file's own threshold, else none; loaders/frame_select.py);
+    `holdout_every` N holds out images 0, N, 2N, ... as the test split of a capture without its own split (None:
+    every 8th, as nerfstudio and instant-ngp do); a NeRF-synthetic scene or a file with split lists keeps its own.
     """
     downscale = check_downscale(downscale)
     max_size = check_max_size(max_size)
@@ -105,6 +108,11 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
     splits = None if splits is None else ((splits,) if isinstance(splits, str) else tuple(splits))
     fmt, root = detect_format(path)
     extra_args = {"workspace": workspace} if fmt == "photos" else {}
+    if fmt in ("nerfstudio", "llff", "colmap"):
+        extra_args["holdout_every"] = TEST_EVERY if holdout_every is None else check_holdout_every(holdout_every)
+    elif fmt == "photos" and holdout_every not in (None, TEST_EVERY):
+        raise UserError("--holdout-every applies to scenes with poses; a photo folder holds out every 8th view "
+                        "after structure-from-motion", hint="run `repaint-nerf sfm` first and point to its result")
     if fmt in ("blender", "nerfstudio"):
         extra_args["sharpness_discard"] = None if sharpness_discard is None else check_sharpness_discard(
             sharpness_discard)
@@ -115,6 +123,13 @@ def load_scene(path: str | Path, downscale: float = 1.0, kind: str | None = None
         scene.kind = kind
     elif fmt in ("blender", "nerfstudio", "colmap") and not scene.extra.get("kind_given"):
         choose_kind(scene)
+    elif fmt == "llff" and "train" in scene.splits and \
+            view_spread_deg(scene.train.cameras.c2w.double().numpy()) > FORWARD_MAX_ANGLE:
+        # poses_bounds.npy also carries 360-degree captures (mip-NeRF 360 ships them so): decide from the layout
+        bounds = scene.extra["bounds"]
+        scene.extra.setdefault("depth_range", [float(bounds.min()), float(bounds.max())])
+        choose_kind(scene)
+    scene.extra.setdefault("holdout", {"rule": "the dataset's own test split"})
     scene.extra.setdefault("downscale", downscale)
     scene.extra.setdefault("max_size", max_size)
     normalize_scene(scene)

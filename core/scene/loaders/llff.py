@@ -12,7 +12,8 @@ import numpy as np
 
 from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.cameras import Cameras
-from repaint_nerf.core.scene.loaders.common import check_pose, every_eighth_split, load_split, wanted
+from repaint_nerf.core.scene.loaders.common import (TEST_EVERY, check_pose, every_eighth_split, holdout_note,
+                                                    load_split, wanted)
 from repaint_nerf.core.scene.loaders.images import list_images
 from repaint_nerf.core.scene.scene import Scene
 
@@ -46,9 +47,10 @@ def image_folder(root: Path, downscale: float) -> Path:
     return shrunk[0][1]
 
 
-def load_llff(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0) -> Scene:
-    """Load an LLFF scene; every 8th image is test, near/far come from the per-view bounds; `max_size` as in
-    load_split."""
+def load_llff(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0,
+              holdout_every: int = TEST_EVERY) -> Scene:
+    """Load an LLFF scene; every `holdout_every`-th image is test, near/far come from the per-view bounds;
+    `max_size` as in load_split."""
     root = Path(root)
     path = root / "poses_bounds.npy"
     try:
@@ -80,11 +82,12 @@ def load_llff(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0
                          hint="the images and poses must match one to one (sorted by file name)")
     h, w, f = hwf[:, 0], hwf[:, 1], hwf[:, 2]
     cams = Cameras.create(c2w, f, f, w / 2.0, h / 2.0, np.round(w), np.round(h))
-    tr, te = every_eighth_split(n)
+    tr, te = every_eighth_split(n, holdout_every)
     out = {}
     for name, idx in (("train", tr), ("test", te)):
         if idx and wanted(name, splits):
             out[name] = load_split(cams[idx], [files[i] for i in idx], [files[i].name for i in idx], downscale,
                                    max_size=max_size)
     return Scene(root=root, format="llff", splits=out, kind="forward", near=float(bounds.min() * 0.9),
-                 far=float(bounds.max() * 1.1), extra={"bounds": bounds, "images_dir": folder.name})
+                 far=float(bounds.max() * 1.1), extra={"bounds": bounds, "images_dir": folder.name,
+                        "holdout": holdout_note(holdout_every, "image file names sorted")})

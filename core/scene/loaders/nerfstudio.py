@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from repaint_nerf.core.errors import SceneError
-from repaint_nerf.core.scene.loaders.common import every_eighth_split, wanted
+from repaint_nerf.core.scene.loaders.common import TEST_EVERY, every_eighth_split, holdout_note, wanted
 from repaint_nerf.core.scene.loaders.frame_select import select_frames, warn_skipped
 from repaint_nerf.core.scene.loaders.reach import content_reach
 from repaint_nerf.core.scene.loaders.transforms_json import (find_image, frames_of, load_frames, parse_aabb,
@@ -24,8 +24,9 @@ def _norm(p: str) -> str:
 
 
 def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0,
-                    sharpness_discard: float | None = None) -> Scene:
-    """Load `root/transforms.json` (or the JSON file given) as a scene with train/test splits.
+                    sharpness_discard: float | None = None, holdout_every: int = TEST_EVERY) -> Scene:
+    """Load `root/transforms.json` (or the JSON file given) as a scene with train/test splits (the file's split
+    lists, else every `holdout_every`-th frame with an image, sorted by file path, is test).
 
     `sharpness_discard` (None: the JSON's `sharpness_discard_threshold`) discards blurry frames (frame_select).
     """
@@ -56,8 +57,10 @@ def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: i
             groups[s] = [index[_norm(n)] for n in names if index[_norm(n)] in usable]
         if not groups.get("train"):
             raise SceneError("the split lists give no 'train_filenames' with an image", path)
+        holdout = {"rule": "the file's own split lists (train/val/test_filenames)"}
     else:
-        tr, te = every_eighth_split(len(order))
+        tr, te = every_eighth_split(len(order), holdout_every)
+        holdout = holdout_note(holdout_every, "frames with an image, sorted by file path")
         groups = {"train": [order[k] for k in tr]}
         if te:
             groups["test"] = [order[k] for k in te]
@@ -70,6 +73,7 @@ def load_nerfstudio(root: Path, downscale: float = 1.0, splits=None, max_size: i
         extra["aabb"] = aabb
     extra.update(content_reach(meta, root, path, aabb))
     extra["skipped"] = sel.report()
+    extra["holdout"] = holdout
     if models:
         extra["camera_models"] = sorted(models)
     return Scene(root=root, format="nerfstudio", splits=out, background=parse_background(meta, path), extra=extra)

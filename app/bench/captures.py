@@ -1,0 +1,60 @@
+"""`repaint-nerf bench captures`: list the public real captures the benchmarks use (core/bench/captures.py) and
+prepare one from a fetched snapshot into a local folder outside the repository (core/bench/capture_prepare.py)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from repaint_nerf.core.bench.captures import CAPTURES, default_root, find_capture
+
+HELP = "list the public real captures, or prepare one from a fetched snapshot into a local capture folder"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    what = p.add_mutually_exclusive_group(required=True)
+    what.add_argument("--list", action="store_true", help="list the registered captures and where they come from")
+    what.add_argument("--prepare", metavar="NAME", help="copy capture NAME out of --from into --dest/NAME")
+    p.add_argument("--from", dest="source", default=None,
+                   help="the fetched snapshot's git directory (e.g. /work/.mirror/OWNER+NAME/repo) or a plain folder")
+    p.add_argument("--dest", default=None, help=f"folder that receives NAME/ (default {default_root()})")
+    p.add_argument("--commit", default=None, help="commit to copy (default: the registered one; HEAD: the newest)")
+    p.add_argument("--shrink", default="", help="also write images_N/ copies shrunk by these factors, e.g. 4,8")
+    p.add_argument("--force", action="store_true", help="replace a capture folder prepared before")
+
+
+def _factors(text: str) -> tuple[int, ...]:
+    from repaint_nerf.core.errors import UserError
+
+    try:
+        return tuple(int(t) for t in text.split(",") if t.strip())
+    except ValueError:
+        raise UserError(f"--shrink takes whole factors separated by commas, got {text!r}", hint="e.g. --shrink 4,8") \
+            from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from repaint_nerf.core.bench.capture_prepare import prepare
+    from repaint_nerf.core.errors import UserError
+
+    if args.list:
+        root = Path(args.dest).expanduser() if args.dest else default_root()
+        for c in CAPTURES:
+            where = root / c.name
+            print(f"{c.name}: {c.kind}\n  github:{c.repo} @ {c.commit[:12]}, {c.path or '(root)'}\n  {c.layout}; "
+                  f"{c.images}\n  licence: {c.licence}\n  " + (f"prepared: {where}" if where.is_dir() else
+                                                               "not prepared") + (f"\n  note: {c.note}" if c.note else ""))
+        return 0
+    cap = find_capture(args.prepare)
+    if not args.source:
+        raise UserError("--prepare needs --from: the snapshot's git directory or a folder holding the capture",
+                        hint=f"fetch github:{cap.repo}, then --from /work/.mirror/{cap.repo.replace('/', '+')}/repo")
+    res = prepare(cap, Path(args.source), Path(args.dest) if args.dest else default_root(), args.commit,
+                  _factors(args.shrink), args.force)
+    print(f"prepared {cap.name} in {res.folder}: {res.copied} files copied")
+    if res.missing:
+        print(f"warning: {len(res.missing)} file(s) listed by the snapshot are absent there and were not copied, "
+              f"e.g. {', '.join(res.missing[:3])}")
+    for f, n in res.shrunk.items():
+        print(f"images_{f}/: {n} images written" if n else f"images_{f}/: kept as shipped (or no images/ folder)")
+    print(f"bench it: repaint-nerf bench recon --scene {res.folder} --seconds 300 --json recon-{cap.name}.json")
+    return 0

@@ -1,0 +1,62 @@
+"""The public real captures the benchmarks use (issue 32): where each lives (repository, commit, folder inside), what
+kind of scene it is and its licence. The captures themselves never enter this repository: `capture_prepare.py`
+copies one from a fetched snapshot into a local folder (default ~/.cache/repaint-nerf/captures/NAME).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from repaint_nerf.core.errors import UserError
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One public capture: a folder `path` inside `repo` at `commit`, opened by `load_scene` as it ships."""
+
+    name: str
+    repo: str  # owner/name on GitHub
+    commit: str
+    path: str  # folder inside the repository ("" = its root)
+    kind: str  # "object in its room", "forward-facing", "360 degrees"
+    layout: str  # the file that describes it
+    images: str  # count x size as shipped
+    licence: str
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+CAPTURES = (
+    Capture("fox", "NVlabs/instant-ngp", "abe236ee00cf90cfca6e36e65c00435d5b21f50a", "data/nerf/fox",
+            "object in its room (handheld phone, portrait)", "instant-ngp transforms.json, aabb_scale 4, OpenCV "
+            "distortion, per-frame sharpness", "50 x 1080x1920 JPEG (67 frames listed, 17 of them without an image)",
+            "NVIDIA Source Code License (non-commercial), the repository's LICENSE.txt",
+            "the capture issue 32 describes; opens only if missing frames are skipped"),
+    Capture("fern", "luo-ziyuan/CopyRNeRF-code", "454f028b606be4eb69c629aa4019b501504fb12b",
+            "data/nerf_llff_data/fern", "forward-facing", "LLFF poses_bounds.npy",
+            "20 x 4032x3024 JPEG, with images_4/ and images_8/ shipped beside",
+            "not stated in that repository (the NeRF paper's LLFF 'fern' scene, Mildenhall et al.)",
+            "its sparse/0/images.bin and database.db are absent from the snapshot; poses_bounds.npy is what opens it"),
+    Capture("ethiopian_head", "vork/ethiopianHead", "a7061eb314f07ca6ab8415c3a01bb9bc5fd76b50", "",
+            "360 degrees (an object on a turntable-like stand, the room behind it)", "LLFF poses_bounds.npy (NeRD)",
+            "66 x 4000x4000 JPEG, with 66 masks in masks/", "CC BY-NC-SA 4.0 (the repository's LICENSE.md)",
+            "cameras circle about 340 degrees of azimuth"),
+)
+
+
+def default_root() -> Path:
+    """Where prepared captures go: $REPAINT_NERF_CAPTURES, else ~/.cache/repaint-nerf/captures (never the repo)."""
+    env = os.environ.get("REPAINT_NERF_CAPTURES")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "repaint-nerf" / "captures"
+
+
+def find_capture(name: str, registry: tuple[Capture, ...] = CAPTURES) -> Capture:
+    """The registered capture called `name`; a `UserError` listing the names otherwise."""
+    for cap in registry:
+        if cap.name == name:
+            return cap
+    raise UserError(f"no capture called {name!r}", hint="`repaint-nerf bench captures --list` shows them: "
+                    + ", ".join(c.name for c in registry))
