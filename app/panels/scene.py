@@ -1,10 +1,28 @@
 """Scene and training panel: open, training status with a live loss/PSNR plot, pause/resume, save, export."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from imgui_bundle import imgui, implot
 
 from repaint_nerf.app.panels.common import remember_item, unavailable
+
+
+# What each phase's 'psnr' measures: stage 1 the step's training rays; a repaint the pixels Eq. unmask holds
+# to the photos (the selection changes on purpose, so a PSNR over it says nothing).
+PSNR_LABELS = {"reconstruct": "PSNR", "repaint": "unmasked PSNR"}
+
+
+def status_line(st: dict) -> str:
+    """The training status: phase, step, loss and what its PSNR measures; a missing or non-finite value is left out."""
+    parts = [f"{st.get('phase', '')} step {st.get('step', 0)}".strip()]
+    loss, psnr = st.get("loss"), st.get("psnr")
+    if isinstance(loss, (int, float)) and math.isfinite(loss):
+        parts.append(f"loss {loss:.4f}")
+    if isinstance(psnr, (int, float)) and math.isfinite(psnr):
+        parts.append(f"{PSNR_LABELS.get(st.get('phase'), 'PSNR')} {psnr:.2f} dB")
+    return "  ".join(parts)
 
 
 def draw(app) -> None:
@@ -43,8 +61,7 @@ def draw(app) -> None:
         app.set_training(s.training)
     st = s.last_status
     if st:
-        imgui.text(f"{st.get('phase', '')} step {st.get('step', 0)}  loss {st.get('loss', float('nan')):.4f}  "
-                   f"PSNR {st.get('psnr', float('nan')):.2f} dB")
+        imgui.text(status_line(st))
     h = s.history
     if h.steps and implot.begin_plot("##training", imgui.ImVec2(-1, 140)):
         implot.setup_axes("step", "PSNR (dB) / loss", implot.AxisFlags_.auto_fit.value,

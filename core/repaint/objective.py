@@ -26,6 +26,17 @@ def unmask_loss(rgb: Tensor, target: Tensor, keep: Tensor, reduction: str = "sum
     raise ValueError(f"unknown unmask reduction {reduction!r}; use one of {', '.join(UNMASK_REDUCTIONS)}")
 
 
+def masked_mse(rgb: Tensor, target: Tensor, weight: Tensor) -> Tensor | None:
+    """Mean squared error per channel over the pixels where `weight` (B|1, 1, H, W) is 1; None when there are none.
+
+    The per-pixel figure behind Eq. unmask (weight = keep) and the offline targets (weight = mask), without a
+    graph: what a status line or a PSNR reads, at any image size and reduction."""
+    n = 3 * float(weight.float().sum()) * (rgb.shape[0] if weight.shape[0] == 1 else 1)
+    if n <= 0:
+        return None
+    return (((rgb.detach().float() - target.float()) * weight.float()) ** 2).sum() / n
+
+
 def unmask_weight(lambda_unmask: float, progress: float, ramp: float = 0.0, start: float = 1.0) -> float:
     """Eq. s2's lambda_unmask at `progress` (step / steps, 0..1) of the edit: it rises linearly from
     start x lambda_unmask to lambda_unmask over the first `ramp` of the steps, then stays there (ramp 0: constant).

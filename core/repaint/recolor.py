@@ -56,11 +56,12 @@ class RecolorGuidance(TargetGuidance):
     grow_region = False
 
     def __init__(self, images: list[Tensor], masks: list[Tensor], color, mode: str = "shading",
-                 weight: float = 1.0):
-        """images (H, W, 3) and masks (H, W) per training view, at the render resolution."""
+                 weight: float = 1.0, reduction: str = "sum"):
+        """images (H, W, 3) and masks (H, W) per training view, at the render resolution; `reduction` as
+        the trainer reduces Eq. unmask (TargetGuidance)."""
         self.color = tuple(float(c) for c in color)
         self.mode = mode
         y_ref = reference_luminance(images, masks)
         targets = [recolor(im, self.color, m, mode, y_ref).permute(2, 0, 1)[None]
                    for im, m in zip(images, masks)]
-        super().__init__(targets, weight)
+        super().__init__(targets, weight, reduction)

@@ -57,7 +57,7 @@ def _recolor(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
     from repaint_nerf.core.repaint.recolor import RecolorGuidance
 
     rgb = resolve_color(t.prompt, inputs.color)
-    return RecolorGuidance(t.images, t.masks, rgb, t.cfg.recolor_mode)
+    return RecolorGuidance(t.images, t.masks, rgb, t.cfg.recolor_mode, reduction=t.cfg.unmask_reduction)
 
 
 def _remove(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
@@ -67,7 +67,8 @@ def _remove(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:
     region = selection_region(t.cameras, t.masks, t.bound, t.cfg.region_resolution)
     # Inpaint (and leave free of the unmask loss) a rim around the object's soft edges too.
     t.widen_masks(max(1, round(max(t.size) / 64)))
-    return RemoveGuidance(t.images, t.masks, region, t.bound, clear_weight=t.cfg.remove_clear_weight, seed=t.cfg.seed)
+    return RemoveGuidance(t.images, t.masks, region, t.bound, clear_weight=t.cfg.remove_clear_weight, seed=t.cfg.seed,
+                          reduction=t.cfg.unmask_reduction)
 
 
 def _analytic(t: RepaintTrainer, inputs: GuidanceInputs) -> Guidance:

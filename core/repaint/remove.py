@@ -19,11 +19,11 @@ class RemoveGuidance(TargetGuidance):
     def __init__(self, images: list[Tensor], masks: list[Tensor], region: Tensor | None = None,
                  bound: float = 1.0, weight: float = 1.0, clear_weight: float = 10.0,
                  clear_points: int = 8192, step_size: float | None = None, inpaint_radius: int = 5,
-                 seed: int = 0):
+                 seed: int = 0, reduction: str = "sum"):
         """images (H, W, 3), masks (H, W) (dilate them first to cover the object's edges), region from
-        `selection_region` (None: no 3D clearing)."""
+        `selection_region` (None: no 3D clearing); `reduction` as the trainer reduces Eq. unmask."""
         targets = [inpaint(im, m, inpaint_radius).permute(2, 0, 1)[None] for im, m in zip(images, masks)]
-        super().__init__(targets, weight)
+        super().__init__(targets, weight, reduction)
         self.region, self.bound = region, float(bound)
         self.clear_weight, self.clear_points = float(clear_weight), int(clear_points)
         self.step_size = step_size or 2 * math.sqrt(3) * bound / 1024

@@ -34,10 +34,12 @@ from repaint_nerf.core.repaint.dilate import dilate
 from repaint_nerf.core.repaint.guidance import as_guidance
 from repaint_nerf.core.repaint.estimate import Estimate, Progress, estimate_repaint
 from repaint_nerf.core.repaint.region import mark_region_occupied, selection_region
-from repaint_nerf.core.repaint.objective import UNMASK_REDUCTIONS, stage2_loss, unmask_loss, unmask_weight
+from repaint_nerf.core.repaint.objective import (UNMASK_REDUCTIONS, masked_mse, stage2_loss, unmask_loss,
+                                                 unmask_weight)
 from repaint_nerf.core.train.adan import OFFICIAL_LR, OFFICIAL_MULTIPLIERS, PAPER_LR, Adan, param_groups
 from repaint_nerf.core.train.checkpoint import Checkpoint, split_state
 from repaint_nerf.core.train.health import SpikeDetector
+from repaint_nerf.core.train.metrics import mse_to_psnr
 from repaint_nerf.core.train.schedule import LRSchedule
 from repaint_nerf.core.train.stage1 import target_image
 
@@ -263,8 +265,16 @@ class RepaintTrainer:
         target = self.images[view].permute(2, 0, 1)[None]
         return unmask_loss(rgb, target, self.keep[view][None, None], self.cfg.unmask_reduction)
 
+    def unmasked_psnr(self, rgb: Tensor, view: int) -> float | None:
+        """PSNR (dB) of the pixels Eq. unmask holds in this render against the photo; None when it holds none or
+        the render is not finite."""
+        target = self.images[view].permute(2, 0, 1)[None]
+        mse = masked_mse(rgb, target, self.keep[view][None, None])
+        return None if mse is None or not bool(torch.isfinite(mse)) else mse_to_psnr(mse)
+
     def step(self) -> dict:
-        """One edit step on a random view; returns its losses and whether it was skipped."""
+        """One edit step on a random view; returns its losses, the unmasked PSNR ('psnr', when the step was not
+        skipped) and whether it was skipped."""
         with self._lock:
             t0 = time.perf_counter()
             self.field.train()
@@ -282,6 +292,9 @@ class RepaintTrainer:
             if not skipped:
                 unmask = self.unmask_loss(rgb, view)
                 info["unmask"] = float(unmask.detach())
+                kept = self.unmasked_psnr(rgb, view)
+                if kept is not None:
+                    info["psnr"] = kept
                 c = self.clip.loss(rgb, mask) if self.clip is not None else None
                 if c is not None:
                     info["clip"] = float(c.detach())
