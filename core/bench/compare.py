@@ -80,13 +80,8 @@ def compare(bench: str, base: dict | None, head: dict | None) -> list[dict]:
     if bench == "scale":
         figures = [Figure(f.label.format(size=s), f.path.format(size=s), f.lower_is_better, f.unit)
                    for s in scale_sizes(base or {}, head or {}) for f in figures]
-    rows = []
-    for f in figures:
-        a = None if base is None else lookup(base, f.path)
-        b = None if head is None else lookup(head, f.path)
-        ratio = b / a if a not in (None, 0.0) and b is not None else None
-        better = None if a is None or b is None else (b < a if f.lower_is_better else b > a)
-        rows.append({"label": f.label, "unit": f.unit, "base": a, "head": b, "ratio": ratio, "better": better})
+    rows = [_row(f.label, f.unit, None if base is None else lookup(base, f.path),
+                 None if head is None else lookup(head, f.path), f.lower_is_better) for f in figures]
     if bench == "scale":
         rows += size_ratio_rows(base, head)
     return rows
@@ -102,11 +97,15 @@ def size_ratio_rows(base: dict | None, head: dict | None) -> list[dict]:
             lo = None if r is None else lookup(r, f"sizes[{sizes[0]}].seconds_to_30")
             hi = None if r is None else lookup(r, f"sizes[{s}].seconds_to_30")
             vals.append(hi / lo if lo and hi is not None else None)
-        a, b = vals
-        rows.append({"label": f"time to 30 dB, {s} px / {sizes[0]} px", "unit": "x", "base": a, "head": b,
-                     "ratio": b / a if a and b is not None else None,
-                     "better": None if a is None or b is None else b < a})
+        rows.append(_row(f"time to 30 dB, {s} px / {sizes[0]} px", "x", *vals, lower_is_better=True))
     return rows
+
+
+def _row(label: str, unit: str, a: float | None, b: float | None, lower_is_better: bool) -> dict:
+    """One row: both sides' figure, head / base, and whether the head did better (None where a side lacks it)."""
+    ratio = b / a if a not in (None, 0.0) and b is not None else None
+    better = None if a is None or b is None else (b < a if lower_is_better else b > a)
+    return {"label": label, "unit": unit, "base": a, "head": b, "ratio": ratio, "better": better}
 
 
 def format_rows(bench: str, rows: list[dict]) -> str:

@@ -173,8 +173,8 @@ def march_budget(step: int, full: int, early: int, ramp_steps: int, fog_cleared:
     up to the far bound is kept and differentiated; their count is the step count (sample_budget). While the
     field is fog it holds no detail a finer step would resolve, so it marches at the early budget
     (TrainConfig.early_max_samples) whatever the image size; the ramp starts when the fog clears (the first
-    training step whose filter pass dropped candidates: Stage1Trainer.fog_cleared_step), so a size whose fog lasts more
-    steps does not pay for a finer march in it; at the latest at the end of the grid's warm-up (`ramp_steps`).
+    training step whose filter pass dropped candidates: Stage1Trainer.fog_cleared_step), so a size whose fog
+    lasts more steps does not pay for a finer march in it; at the latest at the end of the grid's warm-up.
     """
     start = ramp_steps if fog_cleared is None else min(fog_cleared, ramp_steps)
     if early <= 0 or early >= full or step >= start + ramp_steps:
@@ -246,19 +246,19 @@ class Stage1Trainer:
         self.uniform_size = bool((ws == ws[0]).all() and (hs == hs[0]).all())
         self.has_alpha = self.pixels.shape[1] == 4
         self.cameras = scene.field_cameras("train").to(self.device)
+        side = int(max(ws.max(), hs.max()))  # the longest image side: the budgets and the field's defaults follow it
         if self.cfg.max_samples <= 0:
-            self.cfg = dataclasses.replace(self.cfg, max_samples=sample_budget(int(max(ws.max(), hs.max()))))
+            self.cfg = dataclasses.replace(self.cfg, max_samples=sample_budget(side))
         if self.cfg.grid_resolution <= 0:
             self.cfg = dataclasses.replace(self.cfg, grid_resolution=grid_resolution_for(self.device))
 
         self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
         if field_cfg is None:  # a fresh field (a resumed one keeps its saved config)
-            side = int(max(ws.max(), hs.max()))
             field_cfg = with_appearance(warped_config(scene, self.device, side) if self.cfg.scene_warp else None,
                                         scene, self.cfg, self.device, side)
         if self.features is not None and field_cfg is not None and getattr(field_cfg, "feature_dim", 0) != self.feature_dim:
             field_cfg = dataclasses.replace(field_cfg, feature_dim=self.feature_dim)
-        self.field, self.field_cfg = make_field(field_cfg, self.device, int(max(ws.max(), hs.max())))
+        self.field, self.field_cfg = make_field(field_cfg, self.device, side)
         if self.features is not None and getattr(self.field_cfg, "feature_dim", 0) != self.feature_dim:
             self.field_cfg = dataclasses.replace(self.field_cfg, feature_dim=self.feature_dim)
             self.field = type(self.field)(self.field_cfg).to(self.device)
