@@ -81,23 +81,35 @@ def test_aabb_scale_sets_the_field_cube_the_kind_and_the_warp(scene_factory, tmp
 
     src = scene_factory("demo", size=16, views=12, test_views=4)
     half = 0.5 / 0.33 * 1.05  # the unit cube's half-size in world units, with normalize.MARGIN
-    for k, kind, extent in ((1, "bounded", None), (4, "unbounded", 4.0), (16, "unbounded", 16.0)):
+    for k, kind in ((1, "bounded"), (4, "unbounded"), (16, "unbounded")):
         write_ngp_capture(src, tmp_path / f"k{k}", extra={"aabb_scale": k})
         scene, _ = _load(tmp_path / f"k{k}")
         assert scene.kind == kind and f"aabb_scale {k}" in scene.extra["kind_reason"]
-        assert np.allclose(scene.norm.center, 0.0) and abs(1.0 / scene.norm.scale - half) < 1e-6
         spec = warp_spec(scene)
-        assert (spec is None) if extent is None else (spec["kind"] == "contract" and spec["extent"] == extent)
         text = format_summary(scene_summary(scene))
-        assert "instant-ngp's unit cube" in text and (extent is None or f"marched to {extent:g}x" in text)
+        assert "instant-ngp's unit cube" in text
+        if k == 1:  # bounded: the unit cube is the field cube, cameras outside it or not
+            assert np.allclose(scene.norm.center, 0.0) and abs(1.0 / scene.norm.scale - half) < 1e-6
+            assert spec is None
+            continue
+        # contracted: the field cube holds the unit cube and every camera (the demo's ring lies outside the unit
+        # cube), and rays reach k unit cubes (in field units of the grown cube), never less than 2
+        cams = scene.field_cameras("train").c2w[:, :3, 3]
+        assert float(cams.abs().max()) <= 1.0 and scene.extra["normalization"]["grown_for_cameras"] > 1.0
+        corner = scene.norm.to_field(np.full(3, 0.5 / 0.33))
+        assert np.all(np.abs(corner) <= 1.0)
+        reach = (k * 0.5 / 0.33 + float(np.max(np.abs(scene.norm.center)))) * scene.norm.scale
+        assert spec["kind"] == "contract" and spec["extent"] == pytest.approx(max(2.0, reach))
+        assert f"marched to {spec['extent']:.4g}x" in text and "to hold the cameras" in text
     forced, _ = _load(tmp_path / "k4", kind="bounded")
     assert warp_spec(forced) is None
     meta = json.loads((tmp_path / "k4" / "transforms.json").read_text())  # an aabb sets the unit cube instead
     meta["aabb"] = [[-1.0, -1.0, 0.0], [1.0, 1.0, 1.0]]
     (tmp_path / "k4" / "transforms.json").write_text(json.dumps(meta))
     boxed, _ = _load(tmp_path / "k4")
-    assert np.allclose(boxed.norm.center, [0, 0, 0.5]) and abs(1.0 / boxed.norm.scale - 1.05) < 1e-6
-    assert warp_spec(boxed)["extent"] == 4.0
+    lo, hi = np.asarray(boxed.extra["normalization"]["box"])
+    assert np.all(lo <= [-1.0, -1.0, 0.0]) and np.all(hi >= [1.0, 1.0, 1.0])  # the aabb, grown for the cameras
+    assert warp_spec(boxed)["extent"] >= 2.0
     meta["aabb_scale"] = 0.5
     (tmp_path / "k4" / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(SceneError, match="aabb_scale"):

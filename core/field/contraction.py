@@ -23,6 +23,7 @@ from repaint_nerf.core.scene.normalize import frustum_points
 SCENE_WARPS = {"bounded": None, "unbounded": "contract", "forward": "ndc"}
 CONE = 1.0 / 256.0  # instant-ngp's cone angle for large scenes: a step is at least t/256
 CONTRACT_EXTENT = 16.0  # rays stop where the contraction has covered 97% of its range
+CONTRACT_MIN_EXTENT = 2.0  # the least reach of a dataset-given aabb_scale (contraction covers half its range)
 NDC_FAR_FACTOR = 4.0  # forward scenes: march to 4x the farthest training depth
 
 
@@ -149,7 +150,19 @@ def contract_extent(scene) -> float:
     """How far (field units) a contracted scene's rays march: instant-ngp's `aabb_scale` when the dataset gives one
     above 1 (its unit cube is the field cube: normalize.py), else CONTRACT_EXTENT."""
     k = scene.extra.get("aabb_scale")
-    return float(k) if k is not None and k > 1 else CONTRACT_EXTENT
+    if k is None or k <= 1:
+        return CONTRACT_EXTENT
+    box = scene.extra.get("unit_box")
+    if box is None or scene.norm is None:
+        return float(k)
+    # the reach in field units: k unit cubes around the unit cube's centre, in a field cube that may have grown
+    # to hold the cameras (normalize._hold_cameras); never less than CONTRACT_MIN_EXTENT, so content just past
+    # the cameras keeps a place
+    lo, hi = np.asarray(box, dtype=np.float64)
+    half_world = 0.5 * float(np.max(hi - lo)) * float(k)
+    centre = (lo + hi) / 2.0 - np.asarray(scene.norm.center, dtype=np.float64)
+    reach = (half_world + float(np.max(np.abs(centre)))) * float(scene.norm.scale)
+    return max(CONTRACT_MIN_EXTENT, reach)
 
 
 def warp_spec(scene) -> dict | None:
@@ -177,8 +190,9 @@ def warp_summary(scene) -> tuple[str, str]:
     kind = SCENE_WARPS.get(getattr(scene, "kind", "bounded"))
     if kind == "contract":
         e = contract_extent(scene)
-        src = f"the reach aabb_scale {e:g} gives" if scene.extra.get("aabb_scale", 1) > 1 else "the default reach"
-        return (f"mip-NeRF 360 contraction beyond the field cube, rays marched to {e:g}x its half-size",
+        k = scene.extra.get("aabb_scale", 1)
+        src = f"the reach aabb_scale {k:g} gives" if k > 1 else "the default reach"
+        return (f"mip-NeRF 360 contraction beyond the field cube, rays marched to {e:.4g}x its half-size",
                 f"an {scene.kind} scene: far content keeps a place in the field; {src}")
     if kind == "ndc":
         return "NDC of a reference camera", "forward-facing scene: depth reaches to infinity in one direction"

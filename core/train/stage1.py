@@ -50,6 +50,12 @@ class TrainConfig:
     """Stage-1 training settings (JSON-serialisable; saved with checkpoints)."""
 
     rays_per_batch: int = 4096  # paper: 4096
+    # instant-ngp's fixed sample batch: with samples_per_batch > 0 a step takes samples_per_batch / (the last
+    # steps' samples per ray) rays, between rays_per_batch / min_rays_divisor and rays_per_batch, so a scene that
+    # marches many samples per ray (a capture's room, contracted) takes more, cheaper steps (0 = always
+    # rays_per_batch)
+    samples_per_batch: int = 0
+    min_rays_divisor: int = 8
     lr: float = 1e-2  # paper: Adam, 1e-2
     betas: tuple[float, float] = (0.9, 0.99)  # official code
     eps: float = 1e-15
@@ -281,6 +287,7 @@ class Stage1Trainer:
         self.profile = False
         self.last_times: dict = {}
         self.filter_kept = 0.0  # share of its candidates the last filtered step kept (see TrainConfig.one_pass_kept)
+        self.recent_samples_per_ray: float | None = None  # moving mean of the steps' samples per ray (rays_now)
         self.fog_cleared_step: int | None = None  # the first step whose filter dropped candidates (march_samples)
         self.ray_seconds = 0.0  # the last step's seconds per ray: sizes a time-limited evaluation (evaluate)
         bg = scene.background
@@ -390,7 +397,7 @@ class Stage1Trainer:
 
     def make_batch(self) -> dict[str, torch.Tensor]:
         """Rays, targets and background colours for one step."""
-        idx = self.sample_pixels(self.cfg.rays_per_batch)
+        idx = self.sample_pixels(self.rays_now())
         img, u, v = self.pixel_coords(idx)
         origins, dirs, dz = self.cameras.rays(img, u, v)
         px = self.pixels[idx].float() * (1.0 / 255.0)
@@ -419,6 +426,15 @@ class Stage1Trainer:
         if self.depth is not None:
             batch["depth"] = self.depth[idx]
         return batch
+
+    def rays_now(self) -> int:
+        """Rays for the next step: rays_per_batch, or with TrainConfig.samples_per_batch the rays whose samples
+        fill that batch at the recent samples per ray (instant-ngp's fixed sample batch)."""
+        full = self.cfg.rays_per_batch
+        if self.cfg.samples_per_batch <= 0 or self.recent_samples_per_ray is None:
+            return full
+        n = int(self.cfg.samples_per_batch / max(self.recent_samples_per_ray, 1e-3))
+        return max(full // max(1, self.cfg.min_rays_divisor), min(full, n))
 
     @property
     def march_samples(self) -> int:
@@ -511,6 +527,10 @@ class Stage1Trainer:
         for key in ("samples_per_ray", "candidates_per_ray"):
             if key in stats:
                 info[key] = float(stats[key])
+        if "samples_per_ray" in info:
+            spr, prev = info["samples_per_ray"], self.recent_samples_per_ray
+            self.recent_samples_per_ray = spr if prev is None else 0.8 * prev + 0.2 * spr
+        info["rays"] = int(batch["rgb"].shape[0])
         if prof:
             times["render"] = dict(stats.get("time", {}))
             self.last_times = times

@@ -53,6 +53,7 @@ def scene_summary(scene: Scene) -> dict:
                        "cy": float(first.cy[0]), "vary": bool(np.ptp(intr, axis=0).max() > 1e-4)},
         "bounds_world": {"region": norm.get("box"), "rule": norm.get("rule"),
                          "source": scene.extra.get("unit_box_from"),
+                         "grown_for_cameras": norm.get("grown_for_cameras"),
                          "field_cube": [[float(c - half) for c in scene.norm.center],
                                         [float(c + half) for c in scene.norm.center]]},
         "normalization": scene.norm.to_dict(),
@@ -96,8 +97,10 @@ def format_summary(info: dict) -> str:
     if b["region"]:
         lo, hi = b["region"]
         src = b.get("source") if b["rule"] == "unit_box" else b["rule"]
+        grown = b.get("grown_for_cameras")
         lines.append(f"scene bounds    [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] "
-                     f"(world, from {src})")
+                     f"(world, from {src}" + (f"; grown {grown:.3g}x to hold the cameras, as a contracted scene "
+                                              "needs them inside the field cube)" if grown else ")"))
     lo, hi = b["field_cube"]
     n = info["normalization"]
     lines.append(f"field cube      [{', '.join(map(f, lo))}] .. [{', '.join(map(f, hi))}] (world)")
