@@ -167,6 +167,21 @@ def test_eval_times_hold_the_first_minute_and_the_report_times():
     assert at["60"]["psnr"] == 6.0 and at["120"]["psnr"] == 12.0 and at["600"] is None
 
 
+def test_a_capture_scores_every_pixel_only_at_the_report_times(tmp_path):
+    """bench recon on a capture: the untrained field's point and the curve between report times take the bounded
+    evaluation (marked), the report times every pixel with SSIM; a synthetic split keeps full points throughout."""
+    from repaint_nerf.core.bench.recon import measure
+
+    write_llff(tmp_path, _forward_poses(17), h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (17, 1)))
+    res = measure(tmp_path, 2.0, evals=2, report_at=(1.0,), minute_curve=False, profile_steps=1)
+    by_target = {p.get("target"): p for p in res["curve"]}
+    assert res["curve"][0]["bounded"] and by_target[1.0].get("bounded") is None and "ssim" in by_target[1.0]
+    assert by_target[2.0]["bounded"] and "only at the report times" in res["evaluation"]["pixels"]
+    full = measure(tmp_path, 2.0, evals=2, report_at=(1.0,), minute_curve=False, profile_steps=1,
+                   bounded_curve=False)
+    assert all("bounded" not in p for p in full["curve"][1:])
+
+
 # ------------------------------------------------------------------ the nerfacto harness (no nerfstudio needed)
 
 
