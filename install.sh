@@ -47,5 +47,5 @@ echo "$v$kept"
 phase "package"
 quiet .venv/bin/python -m pip install -e ".[all,test]"
 v=$(.venv/bin/repaint-nerf --version 2>>"$LOG")
-echo "$v with its extras (diffusion, test)"
+echo "$v with its extras (diffusion, lite, test)"
 echo "done: .venv/bin/repaint-nerf opens the editor; the install's full output is in install.log"

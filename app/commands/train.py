@@ -48,8 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--feature-model", default=None, metavar="MODEL",
                    help="dense feature teacher: an ONNX export (LSeg, CLIP-dense, DINO), a transformers folder or a "
                         "model id in the local Hugging Face cache (DINOv2, SigLIP, or CLIP: MaskCLIP features that "
-                        "also select by text), or 'default' for the built-in one (default: the workspace's choice, "
-                        "else $REPAINT_NERF_FEATURE_MODEL, else built-in); nothing is downloaded")
+                        "also select by text), 'efficientnet-lite0' (ImageNet features; pip install 'repaint-nerf[lite]'), "
+                        "'efficientnet-lite0+default' (both blended) or 'default' for the built-in one (default: "
+                        "the workspace's choice, else $REPAINT_NERF_FEATURE_MODEL, else built-in); nothing is "
+                        "downloaded")
     p.add_argument("--feature-size", default=None, metavar="WxH",
                    help="the feature model's input size in pixels (default: ONNX each image's own size; "
                         "transformers the model's image size on the short side, aspect kept, patch multiples)")
@@ -94,9 +96,11 @@ def check_model_flags(args: argparse.Namespace) -> None:
     from repaint_nerf.core.models.paths import locate_model, model_type
     from repaint_nerf.core.models.depth import check_depth_model
     from repaint_nerf.core.models.vision import check_backbone
-    from repaint_nerf.core.teachers.stage1_targets import DEFAULT_FEATURE, NO_DEPTH_MODEL
+    from repaint_nerf.core.teachers.stage1_targets import NAMED_FEATURES, NO_DEPTH_MODEL, named_feature_teacher
 
-    if args.feature_model and args.feature_model != DEFAULT_FEATURE and not args.no_features:
+    if args.feature_model in NAMED_FEATURES and not args.no_features:
+        named_feature_teacher(args.feature_model)  # the lite ones: a missing package names the pip command
+    elif args.feature_model and not args.no_features:
         path = locate_model("feature", args.feature_model)
         if model_type(path) != "onnx":
             check_backbone(path)

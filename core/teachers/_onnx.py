@@ -70,9 +70,9 @@ def resize_map(x: np.ndarray, height: int, width: int) -> np.ndarray:
     """(h, w, C) or (h, w) float32 -> (height, width, ...) bilinear (cv2's half-pixel centres)."""
     if x.shape[:2] == (height, width):
         return x.astype(np.float32, copy=False)
-    out = [cv2.resize(np.ascontiguousarray(x[..., i:i + 256] if x.ndim == 3 else x), (width, height),
+    out = [cv2.resize(np.ascontiguousarray(x[..., i:i + 128] if x.ndim == 3 else x), (width, height),
                       interpolation=cv2.INTER_LINEAR)
-           for i in (range(0, x.shape[-1], 256) if x.ndim == 3 else [0])]
+           for i in (range(0, x.shape[-1], 128) if x.ndim == 3 else [0])]
     if x.ndim == 2:
         return out[0]
     out = [o[..., None] if o.ndim == 2 else o for o in out]

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from repaint_nerf.core.teachers.base import check_image
 
@@ -97,19 +98,7 @@ class DefaultFeatureTeacher:
 
     def _pool(self, desc: np.ndarray, rgb8: np.ndarray, unit: float) -> np.ndarray:
         cfg = self.cfg
-        size = max(3, int(round(cfg.superpixel * unit)))
-        lab = cv2.cvtColor(rgb8, cv2.COLOR_RGB2Lab)
-        slic = cv2.ximgproc.createSuperpixelSLIC(lab, algorithm=cv2.ximgproc.SLIC,
-                                                 region_size=size, ruler=float(cfg.slic_ruler))
-        slic.iterate(4)
-        labels = slic.getLabels().reshape(-1)
-        n = int(labels.max()) + 1
-        flat = desc.reshape(-1, desc.shape[2])
-        counts = np.bincount(labels, minlength=n).astype(np.float32)
-        sums = np.stack([np.bincount(labels, weights=flat[:, c], minlength=n) for c in range(flat.shape[1])], 1)
-        pooled = (sums / np.maximum(counts, 1.0)[:, None]).astype(np.float32)[labels]
-        a = np.float32(cfg.pooled_weight)
-        return (a * pooled + (1.0 - a) * flat).reshape(desc.shape)
+        return region_pool(desc, rgb8, max(3, int(round(cfg.superpixel * unit))), cfg.slic_ruler, cfg.pooled_weight)
 
     # -- embedding: cosine of the output ~= Gaussian kernel of the descriptor distance ----------
     def embed(self, desc: np.ndarray) -> np.ndarray:
@@ -134,6 +123,25 @@ class DefaultFeatureTeacher:
         np.sin(proj, out=out[:, m:])
         out *= scale
         return out.reshape(*desc.shape[:-1], self.cfg.dim)
+
+
+def region_pool(desc: np.ndarray, rgb8: np.ndarray, size: int, ruler: float, weight: float) -> np.ndarray:
+    """Per-pixel descriptors (H, W, C) mixed with their mean over SLIC superpixels of the image (region size
+    `size` px, compactness `ruler` on Lab): `weight` x region mean + (1 - weight) x the pixel's own. Why: a
+    region gets one vector, so a mask follows the image's edges, not the descriptor's blur or stride."""
+    lab = cv2.cvtColor(rgb8, cv2.COLOR_RGB2Lab)
+    slic = cv2.ximgproc.createSuperpixelSLIC(lab, algorithm=cv2.ximgproc.SLIC, region_size=int(size),
+                                             ruler=float(ruler))
+    slic.iterate(4)
+    labels = slic.getLabels().reshape(-1)
+    n = int(labels.max()) + 1
+    flat = desc.reshape(-1, desc.shape[2])
+    counts = np.bincount(labels, minlength=n).astype(np.float32)
+    member = csr_matrix((np.ones(labels.size), (labels, np.arange(labels.size))), shape=(n, labels.size))
+    sums = member @ flat.astype(np.float64)
+    pooled = (sums / np.maximum(counts, 1.0)[:, None]).astype(np.float32)[labels]
+    a = np.float32(weight)
+    return (a * pooled + (1.0 - a) * flat).reshape(desc.shape)
 
 
 def _blur(x: np.ndarray, sigma: float) -> np.ndarray:

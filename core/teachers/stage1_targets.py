@@ -22,6 +22,9 @@ FEATURE_DIMS = 12
 FEATURE_SETTING = "feature_model"  # null: the default teacher; else {"path", "input_size", "norm"}
 DEPTH_SETTING = "depth_model"      # null: sparse priors only; else the model's path or cached model id
 DEFAULT_FEATURE = "default"        # `--feature-model default`: back to the built-in teacher
+LITE_FEATURE = "efficientnet-lite0"  # the packaged ImageNet network (the `lite` extra; core.teachers.feature_lite)
+LITE_BLEND = LITE_FEATURE + "+" + DEFAULT_FEATURE  # its features concatenated with the built-in teacher's
+NAMED_FEATURES = (DEFAULT_FEATURE, LITE_FEATURE, LITE_BLEND)  # teachers chosen by name, not by a path
 NO_DEPTH_MODEL = "none"            # `--depth-model none`: sparse priors only
 FEATURE_NORMS = ("imagenet", "clip")
 ROOT_ENV = "REPAINT_NERF_MODELS"
@@ -143,16 +146,35 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
     return fm, source
 
 
-def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
-    """The teacher of a choice (ONNX, or a transformers backbone: DINOv2, CLIP as MaskCLIP, SigLIP); a missing
-    or broken model is a ModelNotFoundError naming what to fix."""
+def named_feature_teacher(name: str):
+    """The teacher of a built-in name ('default', 'efficientnet-lite0', 'efficientnet-lite0+default'); the lite
+    ones raise a ModelNotFoundError naming the pip command when the `lite` extra is not installed."""
     from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+
+    if name == DEFAULT_FEATURE:
+        return DefaultFeatureTeacher()
+    from repaint_nerf.core.teachers.feature_lite import LiteFeatureTeacher
+
+    if name == LITE_FEATURE:
+        return LiteFeatureTeacher()
+    if name == LITE_BLEND:
+        from repaint_nerf.core.teachers.feature_blend import BlendFeatureTeacher
+
+        return BlendFeatureTeacher([(LiteFeatureTeacher(), 0.5), (DefaultFeatureTeacher(), 0.5)])
+    raise ValueError(f"unknown built-in feature teacher {name!r}; known: {', '.join(NAMED_FEATURES)}")
+
+
+def make_feature_teacher(fm: FeatureModel, source: str = "flag"):
+    """The teacher of a choice (a built-in name, ONNX, or a transformers backbone: DINOv2, CLIP as MaskCLIP,
+    SigLIP); a missing or broken model is a ModelNotFoundError naming what to fix."""
     from repaint_nerf.core.teachers.feature_hf import HFFeatureTeacher
     from repaint_nerf.core.teachers.feature_onnx import OnnxFeatureTeacher
 
     if fm.path is None:
-        return DefaultFeatureTeacher()
+        return named_feature_teacher(DEFAULT_FEATURE)
     try:
+        if fm.path in NAMED_FEATURES:
+            return named_feature_teacher(fm.path)
         path, kind = _locate("feature", fm.path, source)
         if kind != "onnx":  # a transformers model brings its own input normalisation
             return HFFeatureTeacher(path, input_size=fm.input_size, label=fm.path)

@@ -1,0 +1,34 @@
+"""Teachers combined: the unit features of several teachers concatenated, each scaled by the square root of
+its weight, then L2-normalised. The cosine of two pixels is then the weight-averaged cosine of the parts
+(sum of weights 1), so an ImageNet network's "what it is" and the built-in teacher's colour can both
+vote on one mask.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from repaint_nerf.core.teachers.base import FeatureTeacher, check_image, l2_normalize
+
+
+class BlendFeatureTeacher:
+    """Concatenated unit features of `parts` [(teacher, weight), ...]; named '<a>+<b>'."""
+
+    def __init__(self, parts: list[tuple[FeatureTeacher, float]]):
+        if len(parts) < 2 or any(w <= 0 for _, w in parts):
+            raise ValueError("a blend needs at least two teachers with positive weights")
+        total = float(sum(w for _, w in parts))
+        self.parts = [(t, float(w) / total) for t, w in parts]
+        self.name = "+".join(t.name for t, _ in self.parts)
+
+    def config(self) -> dict:
+        return {"parts": [{"name": t.name, "weight": w, "config": t.config()} for t, w in self.parts]}
+
+    @property
+    def dim(self) -> int:
+        return int(sum(getattr(t, "dim", 0) for t, _ in self.parts))
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """(H, W, 3) uint8 -> (H, W, sum of dims) float32, unit length per pixel."""
+        rgb = check_image(image)
+        feats = [l2_normalize(t(rgb)) * np.float32(np.sqrt(w)) for t, w in self.parts]
+        return l2_normalize(np.concatenate(feats, axis=2))
