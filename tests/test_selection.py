@@ -556,23 +556,16 @@ def test_select_cli_bad_inputs(trained_ws, tmp_path, capsys):
     assert "without a feature head" in capsys.readouterr().err
 
 
-class SheetBeforeObject(nn.Module):
+class SheetBeforeObject(HazeBeforeWall):
     """A selected object (an opaque wall at x >= 0.5, feature (0, 1)) half covered by a nearer object that is 70%
     opaque on the ray (a sheet at x in [0.1, 0.15] over y > 0, feature (1, 0)): a silhouette or a soft surface in
     front of the selected one."""
 
-    def __init__(self):
-        super().__init__()
-        self.bound = 1.0
-
     def density(self, x):
-        sheet = ((x[:, 0] >= 0.1) & (x[:, 0] <= 0.15) & (x[:, 1] > 0)).float() * 24.0
-        return sheet + (x[:, 0] >= 0.5).float() * 1000.0
+        return super().density(x) * torch.where((x[:, 0] < 0.3) & (x[:, 1] <= 0), 0.0, 1.0)
 
     def forward(self, x, d, outputs=("rgb",)):
-        out = {"sigma": self.density(x)}
-        if "rgb" in outputs:
-            out["rgb"] = torch.full((x.shape[0], 3), 0.5)
+        out = super().forward(x, d, outputs)
         if "feature" in outputs:
             near = (x[:, 0] < 0.3).float()[:, None]
             out["feature"] = near * torch.tensor([1.0, 0.0]) + (1 - near) * torch.tensor([0.0, 1.0])
