@@ -23,7 +23,8 @@ from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 from repaint_nerf.core.repaint import registry
 from repaint_nerf.core.repaint.config import RepaintConfig
 from repaint_nerf.core.repaint.trainer import RepaintTrainer
-from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, load_masks, masks_for_views
+from repaint_nerf.core.select.masks import (DEFAULT_THRESHOLD, FIRST_SURFACE, ViewCache, check_threshold, load_masks,
+                                          masks_for_views)
 from repaint_nerf.core.select.selection import Selection
 from repaint_nerf.core.session import Teachers, start_reconstruction
 from repaint_nerf.core.synth.demo import demo_scene_path
@@ -229,7 +230,8 @@ class Engine:
         if capped:
             scale = self._max_scale(cameras)
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
-                                    max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+                             max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
+                             feature_first_surface=FIRST_SURFACE)  # as the selection's views read it
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
             opts.chunk = INTERACTIVE_CHUNK
         was_training = self.field.training

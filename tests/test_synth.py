@@ -239,3 +239,31 @@ def test_photo_like_materials_change_the_image_as_described():
     ell = _render_one(SceneObject("e", "ellipsoid", {"rx": 0.6, "ry": 0.3, "rz": 0.2}, (0.0, 0.0, 0.0),
                                   (0.6, 0.5, 0.4)))
     assert 0.3 < ell.shape[0] / flat.shape[0] < 0.7  # ellipse area pi*0.6*0.3 vs the slab's 1.0 (perspective)
+
+
+def test_occluded_preset_hides_the_can_in_most_views_and_its_masks_hold_only_visible_pixels(tmp_path):
+    """The 'occluded' preset (issue 35): the edited can is partly covered by a nearer object in most views, and the
+    ground-truth mask holds the id of the surface each pixel sees: the can rendered alone covers every pixel the
+    scene's mask gives the can, plus the ones a nearer object takes, which carry that object's id and a smaller depth."""
+    from repaint_nerf.core.synth.presets import build_spec
+    from repaint_nerf.core.synth.raster import Rasterizer
+
+    size, views = 64, 12
+    root = make_scene("occluded", tmp_path / "s", size=size, views=views, seed=0, test_views=1)
+    spec = build_spec("occluded")
+    k = spec.edited_id()
+    meta = json.loads((root / "transforms_train.json").read_text())
+    cams = _cameras(meta)
+    hidden = []
+    with Rasterizer(size, size, spec.near, spec.far) as ras:
+        for i, fr in enumerate(meta["frames"]):
+            alone = ras.render([spec.objects[k - 1]], np.array(fr["transform_matrix"]), float(cams.fx[i]),
+                               float(cams.fy[i]), size / 2, size / 2, ids=[k])
+            mask = _read(root / "gt" / "train" / f"r_{i}_mask.png")
+            depth = np.load(root / "gt" / "train" / f"r_{i}_depth.npy")
+            can, whole = mask == k, alone.mask == k
+            assert not (can & ~whole).any()
+            covered = whole & ~can
+            assert np.all((mask[covered] != 0) & (depth[covered] < alone.depth[covered]))
+            hidden.append(covered.sum() / max(whole.sum(), 1))
+    assert np.mean(np.array(hidden) > 0.05) >= 0.6  # partly hidden in most views

@@ -397,13 +397,15 @@ def patch_to_mask_ms(trainer, patch, size: int = 256, repeats: int = 15) -> dict
     threshold's share)}."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
     from repaint_nerf.core.select.autothreshold import patch_auto_threshold
+    from repaint_nerf.core.select.masks import FIRST_SURFACE
     from repaint_nerf.core.select.query import Patch
     from repaint_nerf.core.select.selection import Selection
 
     cams = trainer.cameras
     scale = size / float(max(int(cams.width[patch.view]), int(cams.height[patch.view])))
     out = render_camera(trainer.field, trainer.grid, cams, patch.view,
-                        RenderOptions(outputs=("feature", "depth", "median_depth", "opacity")), scale=scale)
+                        RenderOptions(outputs=("feature", "depth", "median_depth", "opacity"),
+                                      feature_first_surface=FIRST_SURFACE), scale=scale)
     feat, depth, opacity = out["feature"], out["median_depth"].cpu().numpy(), out["opacity"].cpu().numpy()
     expected = out["depth"].cpu().numpy()  # the automatic threshold's edges, as Engine.select reads them
     cam = cams.to("cpu")[patch.view].scaled(scale)

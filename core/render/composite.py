@@ -56,13 +56,20 @@ def median_crossing(tau: Tensor, trans: Tensor, t_start: Tensor, t_end: Tensor) 
     return torch.where(cross, t_start + (t_end - t_start) * frac.clamp(0.0, 1.0), torch.zeros_like(t_start))
 
 
+FIRST_SURFACE_T = 0.5  # a sample belongs to the ray's first surface while the transmittance in front of it is
+# at least this (the median depth's crossing, `median_crossing`, is the last such sample)
+
+
 def composite(sigma: Tensor, t_start: Tensor, t_end: Tensor, t: Tensor, ray: Tensor, n_rays: int,
               values: dict[str, Tensor] | None = None, tau_before: Tensor | None = None,
-              median: bool = False) -> dict[str, Tensor]:
+              median: bool = False, first_surface: tuple[str, ...] = ()) -> dict[str, Tensor]:
     """Weights and per-ray sums: 'opacity' (sum w), 'depth_sum' (sum w t), one sum w*v per entry of
     `values` (e.g. 'rgb', 'feature'), 'tau' (per-ray sum of optical thickness, float64, detached),
     'weights' (packed); with `median`, 'median_sum' (`median_crossing`: the median distance, 0 where T stays
-    above 0.5). `tau_before` (n_rays,) continues rays composited in earlier rounds."""
+    above 0.5). `tau_before` (n_rays,) continues rays composited in earlier rounds. The entries named in
+    `first_surface` sum only the samples up to the one where T falls through `FIRST_SURFACE_T` (the first
+    surface, at the median depth): what lies behind a nearer object that is only partly opaque on the ray (its
+    silhouette, a thin or soft surface) is not mixed into it."""
     tau = optical_depth(sigma, t_start, t_end)
     alpha = -torch.expm1(-tau)
     trans = transmittance(tau, ray, tau_before)
@@ -70,8 +77,9 @@ def composite(sigma: Tensor, t_start: Tensor, t_end: Tensor, t: Tensor, ray: Ten
     out = {"weights": w, "opacity": segment_sum(w, ray, n_rays), "depth_sum": segment_sum(w * t, ray, n_rays)}
     if median:
         out["median_sum"] = segment_sum(median_crossing(tau, trans, t_start, t_end), ray, n_rays)
+    w_front = w * (trans >= FIRST_SURFACE_T) if first_surface else w
     for name, v in (values or {}).items():
-        out[name] = segment_sum(w[:, None] * v, ray, n_rays)
+        out[name] = segment_sum((w_front if name in first_surface else w)[:, None] * v, ray, n_rays)
     out["tau"] = segment_sum(tau.detach().double(), ray, n_rays)
     return out
 

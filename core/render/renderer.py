@@ -56,6 +56,9 @@ class RenderOptions:
     # per ray: the training image it comes from (R,) long, for fields with appearance codes (core.field.appearance);
     # None: the mean code
     appearance: Tensor | None = None
+    # the feature of the ray's first surface only (core.render.composite, `first_surface`): what a selection reads,
+    # so a nearer object that covers the selected one is not blended with it; False: composited along the ray
+    feature_first_surface: bool = False
 
 
 @dataclass
@@ -137,6 +140,11 @@ def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, di
     return out["sigma"].reshape(-1), {h: out[h] for h in heads}
 
 
+def _first_surface(opts: RenderOptions) -> tuple[str, ...]:
+    """The heads composited at the first surface only (RenderOptions.feature_first_surface)."""
+    return ("feature",) if opts.feature_first_surface else ()
+
+
 def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPlan, heads: tuple,
            opts: RenderOptions, collect: bool, acc: _Acc, dev, cancel) -> tuple[dict, list[Samples]] | None:
     """March rays in rounds over those still alive. collect=False: evaluate the heads and composite each round
@@ -196,7 +204,7 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
             acc.stats["samples"] += len(s)
             with _Timer(acc, "compositing", prof, dev):
                 out = composite(sigma, s.t_start, s.t_end, s.t, s.ray, n, vals, tau_before=carry,
-                                median="median_depth" in opts.outputs)
+                                median="median_depth" in opts.outputs, first_surface=_first_surface(opts))
                 for name, v in out.items():
                     if name not in ("weights", "tau"):
                         totals[name] = totals[name] + v if name in totals else v
@@ -223,7 +231,7 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         acc.stats["peak_samples"] = max(acc.stats["peak_samples"], len(s))
         with _Timer(acc, "compositing", prof, dev):
             totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals,
-                               median="median_depth" in opts.outputs)
+                               median="median_depth" in opts.outputs, first_surface=_first_surface(opts))
     return totals
 
 

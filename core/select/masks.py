@@ -24,6 +24,13 @@ from repaint_nerf.core.workspace import atomic, integrity
 # DEFAULT_THRESHOLD, alpha of the mask equation, is the one the default teacher's kernel is tuned for
 # (bench mask, demo preset, 600 steps: IoU 0.964 at 0.5, best 0.972 at 0.6; 0.945 at 0.35, 0.717 at 0.9).
 MASK_INDEX = "index.json"
+# A view's features for a selection are the first surface's (RenderOptions.feature_first_surface): a nearer object
+# that covers the selected one is not blended with the object behind it where it is only partly opaque on the ray
+# (its silhouette, a soft surface). Measured on trained 128-px fields (24 views, 600 steps, default teacher), same
+# field before/after: 'occluded' with the patch on the can's red body auto 0.919 -> 0.920, best 0.937 -> 0.940, the
+# nearer toys' pixels in the masks 80 -> 68 (of 6438 can pixels); toys auto 0.916 -> 0.917; demo 0.990 -> 0.990. No
+# extra samples or render: the same compositing with a mask on the weights.
+FIRST_SURFACE = True
 
 
 def check_threshold(threshold: float) -> float:
@@ -126,7 +133,8 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
         raise UserError(f"view {view} does not exist; the scene has {n} training views",
                         hint=f"choose --view between 0 and {n - 1}")
     base = opts or RenderOptions()
-    opts = replace(base, outputs=("feature", "depth", "median_depth", "opacity"), background=None, perturb=False)
+    opts = replace(base, outputs=("feature", "depth", "median_depth", "opacity"), background=None, perturb=False,
+                   feature_first_surface=FIRST_SURFACE)
     out = render_camera(field, grid, cameras, int(view), opts)
     return ViewMaps(out["feature"].to("cpu", torch.float16), out["median_depth"].float().cpu(),
                     out["opacity"].float().cpu(), out["depth"].float().cpu())

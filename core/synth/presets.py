@@ -272,6 +272,34 @@ def _toys() -> SceneSpec:
         rigs.hemisphere(radius=4.2, target=(0.0, 0.0, 0.25)), 0.75, opaque=False)
 
 
+def _occluded() -> SceneSpec:
+    """A printed can in a ring of nearer toys, seen from a low table-top rig: from most viewpoints a toy of
+    another colour covers part of the can (a duck in front of it in about a third of the views)."""
+    can_red, duck_y = (0.8, 0.13, 0.12), (0.95, 0.8, 0.16)
+    objs = [
+        SceneObject("rug", "disc", {"radius": 1.3}, (0.0, 0.0, 0.0), (0.55, 0.5, 0.42), "noise", 6.0,
+                    color2=(0.42, 0.38, 0.32), grain=0.25),
+        SceneObject("can", "cylinder", {"radius": 0.2, "height": 0.66}, (0.0, 0.0, 0.33), can_red, "label", 10.0,
+                    color2=(0.95, 0.93, 0.88), grain=0.08, specular=0.5),
+        # the duck: a body and a head of one yellow, in front of the can from the rig's first azimuths
+        SceneObject("duck", "ellipsoid", {"rx": 0.24, "ry": 0.17, "rz": 0.17}, (0.5, 0.05, 0.17), duck_y,
+                    "noise", 14.0, color2=(0.9, 0.68, 0.1), grain=0.15, specular=0.35),
+        SceneObject("duck_head", "sphere", {"radius": 0.11}, (0.55, 0.06, 0.4), duck_y, "noise", 14.0,
+                    color2=(0.9, 0.68, 0.1), grain=0.15, specular=0.35),
+        SceneObject("blocks", "box", {"sx": 0.26, "sy": 0.26, "sz": 0.44}, (-0.2, 0.42, 0.22), (0.2, 0.45, 0.85),
+                    "checker", 10.0, color2=(0.9, 0.9, 0.85), yaw=20.0, grain=0.1),
+        SceneObject("ball", "sphere", {"radius": 0.18}, (-0.42, -0.2, 0.18), (0.2, 0.65, 0.3), "stripes", 9.0,
+                    color2=(0.95, 0.95, 0.9), grain=0.1, specular=0.5),
+        SceneObject("cone", "cone", {"radius": 0.15, "height": 0.48}, (0.14, -0.42, 0.24), (0.55, 0.2, 0.75),
+                    "stripes", 10.0, grain=0.1),
+        *_clutter(0.95),
+    ]
+    return SceneSpec(
+        "occluded", "bounded", objs,
+        Edit("recolor", "can", color=(0.15, 0.35, 0.85), description="the red printed can behind the duck becomes blue"),
+        rigs.hemisphere(radius=2.9, target=(0.0, 0.0, 0.22), elevation_deg=(8.0, 40.0)), 0.75, opaque=False)
+
+
 PRESETS: dict[str, tuple[str, Callable[[], SceneSpec]]] = {
     "demo": ("four distinct-coloured primitives on a checker floor, 360 views, transparent background", _demo),
     "similar": ("four similar red primitives told apart by texture (checker, stripes, noise, plain)", _similar),
@@ -282,6 +310,7 @@ PRESETS: dict[str, tuple[str, Callable[[], SceneSpec]]] = {
     "bread": ("hard: a grainy loaf on a wooden board of a similar brown, clutter around", _bread),
     "lemon": ("hard: a lemon touching a yellow printed box on a shiny metal tray, clutter around", _lemon),
     "toys": ("hard: a can with a printed label touching a red block, among toys on a rug", _toys),
+    "occluded": ("hard: a printed can partly hidden behind a duck and other nearer toys in most views", _occluded),
 }
 
 
