@@ -204,3 +204,30 @@ def test_nerfacto_without_nerfstudio_says_how_to_install_it(tmp_path):
 
     with pytest.raises(UserError, match="no ns-train"):
         measure(tmp_path, 10, tmp_path / "no-venv", tmp_path / "work")
+
+
+def test_captures_table_puts_both_methods_side_by_side_and_docs_render_it(tmp_path, capsys):
+    """bench captures --table gathers bench recon's and bench nerfacto's JSON per capture; repaint-nerf docs shows
+    them as one table (a missing nerfacto run leaves its row out, not a crash)."""
+    from repaint_nerf.app.benchdocs.details import SECTIONS
+    from repaint_nerf.app.cli import main
+
+    ours = {"scene": {"name": "fox", "kind": "unbounded", "size": [512, 288], "train_views": 43, "test_views": 7},
+            "at": {"60": {"psnr": 20.4, "ssim": 0.59, "step": 255, "seconds": 60.1},
+                   "300": {"psnr": 25.9, "ssim": 0.76, "step": 1154, "seconds": 300.0}},
+            "samples_per_ray": {"with_grid": 43.1}, "steps_per_s": 3.85}
+    theirs = {"at": {"60": None, "300": {"psnr": 12.0, "ssim": 0.4, "step": 100, "seconds": 290.0},
+                     "1800": {"psnr": 18.5, "ssim": 0.5, "step": 700, "seconds": 1790.0}}, "steps_per_s": 0.39}
+    (tmp_path / "o.json").write_text(json.dumps(ours))
+    (tmp_path / "n.json").write_text(json.dumps(theirs))
+    out = tmp_path / "captures.json"
+    assert main(["bench", "captures", "--table", f"fox={tmp_path / 'o.json'},{tmp_path / 'n.json'}",
+                 "--table", f"fern={tmp_path / 'o.json'}", "--json", str(out)]) == 0
+    table = json.loads(out.read_text())
+    fox = table["captures"]["fox"]
+    assert fox["ours"]["samples_per_ray"] == 43.1 and fox["nerfacto"]["longest"]["psnr"] == 18.5
+    assert table["captures"]["fern"]["nerfacto"] is None
+    text = SECTIONS["captures"][1](table)
+    assert "| fox | ours | 20.40 |" in text and "18.50 at 1790 s" in text and text.count("| fern |") == 1
+    assert main(["bench", "captures", "--table", "fox"]) != 0
+    assert "NAME=OURS.json" in capsys.readouterr().err

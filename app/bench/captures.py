@@ -14,6 +14,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     what = p.add_mutually_exclusive_group(required=True)
     what.add_argument("--list", action="store_true", help="list the registered captures and where they come from")
     what.add_argument("--prepare", metavar="NAME", help="copy capture NAME out of --from into --dest/NAME")
+    what.add_argument("--table", metavar="NAME=OURS.json[,NERFACTO.json]", action="append",
+                      help="gather a capture's bench recon (and bench nerfacto) JSON into one side-by-side table "
+                           "(repeat per capture; with --json, e.g. docs/bench/captures.json for repaint-nerf docs)")
+    p.add_argument("--json", default=None, help="with --table: where to write the table")
+    p.add_argument("--machine", default="", help="with --table: how the runs were taken (cores, threads), in words")
     p.add_argument("--from", dest="source", default=None,
                    help="the fetched snapshot's git directory (e.g. /work/.mirror/OWNER+NAME/repo) or a plain folder")
     p.add_argument("--dest", default=None, help=f"folder that receives NAME/ (default {default_root()})")
@@ -32,10 +37,41 @@ def _factors(text: str) -> tuple[int, ...]:
             from None
 
 
+def _table(args: argparse.Namespace) -> int:
+    import json
+
+    from repaint_nerf.core.bench.captures import side_by_side
+    from repaint_nerf.core.errors import UserError
+
+    rows = {}
+    for item in args.table:
+        name, _, files = item.partition("=")
+        paths = [Path(f) for f in files.split(",") if f]
+        if not name or not 1 <= len(paths) <= 2:
+            raise UserError(f"--table takes NAME=OURS.json[,NERFACTO.json], got {item!r}",
+                            hint="e.g. --table fox=recon-fox.json,nerfacto-fox.json")
+        try:
+            loaded = [json.loads(p.read_text()) for p in paths]
+        except (OSError, ValueError) as exc:
+            raise UserError(f"cannot read {item!r}: {exc}", hint="give the JSON files bench recon and bench "
+                                                                 "nerfacto wrote") from None
+        rows[name] = side_by_side(loaded[0], loaded[1] if len(loaded) > 1 else None)
+    table = {"machine": args.machine, "report_at": ["60", "120", "300"], "captures": rows}
+    text = json.dumps(table, indent=1)
+    if args.json:
+        Path(args.json).write_text(text + "\n")
+        print(f"wrote {args.json}")
+    else:
+        print(text)
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     from repaint_nerf.core.bench.capture_prepare import prepare
     from repaint_nerf.core.errors import UserError
 
+    if args.table:
+        return _table(args)
     if args.list:
         root = Path(args.dest).expanduser() if args.dest else default_root()
         for c in CAPTURES:

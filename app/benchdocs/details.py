@@ -64,6 +64,23 @@ def _sdcost(d: dict) -> str:
             + table(("option", "s per step", "x baseline", "peak RSS (MB)", "hours for the paper's steps"), rows))
 
 
+def _captures(d: dict) -> str:
+    times = d.get("report_at", ["60", "120", "300"])
+    rows = []
+    for name, c in d["captures"].items():
+        for method in ("ours", "nerfacto"):
+            r = c.get(method)
+            if not r:
+                continue
+            rows.append((name, method, *(num((r["at"].get(t) or {}).get("psnr")) for t in times),
+                         num(r.get("longest", {}).get("psnr")) + (f" at {r['longest']['seconds']:.0f} s"
+                                                                  if r.get("longest") else ""),
+                         num(r.get("samples_per_ray"), 1), num(r.get("steps_per_s"), 2)))
+    return (f"{d.get('machine', '')} Held-out views every 8th image, every pixel, PSNR in dB at the training "
+            "seconds given:\n\n" + table(("capture", "method", *(f"{t} s" for t in times), "longest run",
+                                            "samples per ray", "steps/s"), rows))
+
+
 def _generic(d: dict) -> str:
     rows = [(k, num(v, 3) if isinstance(v, float) else v) for k, v in d.items()
             if isinstance(v, (int, float, str)) and k not in ("measured", "command")]
@@ -73,6 +90,7 @@ def _generic(d: dict) -> str:
 SECTIONS: dict[str, tuple[str, Callable[[dict], str]]] = {
     "recon": ("Reconstruction speed", _recon), "viewport": ("Viewport latency", _viewport),
     "mask": ("Selection masks", _mask), "sdcost": ("Stable Diffusion step cost", _sdcost),
+    "captures": ("Real captures, side by side with nerfacto", _captures),
 }
 
 
