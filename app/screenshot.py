@@ -201,7 +201,7 @@ def _capture_pictures(app, args, out: Path, name: str) -> None:
     _until(app, lambda: app.shown_key == app.requested_key, 3600)
     _drag_patch(app, tuple(float(v) for v in args.patch.split(",")), lambda: None)
     _until(app, lambda: s.has_selection, 1800)
-    _refreshed(app)
+    _refreshed(app, 3600)
     _shot(app, out / f"{name}_patch.png")
     if args.repaint_steps > 0:
         s.tool, s.view_mode = "navigate", "rgb"
@@ -210,7 +210,7 @@ def _capture_pictures(app, args, out: Path, name: str) -> None:
         _until(app, lambda: s.repaint_running, 3600)
         _until(app, lambda: not s.repaint_running, 3600)
         app.set_training(False)
-        _refreshed(app)
+        _refreshed(app, 3600)
         _shot(app, out / f"{name}_repaint.png")
 
 
@@ -250,11 +250,11 @@ def _sharp(app) -> bool:
     return f is not None and f.final and app.shown_key == app.requested_key
 
 
-def _refreshed(app) -> None:
+def _refreshed(app, timeout: float = 300) -> None:
     """Until a new full-resolution frame of the current view is on screen (after a change of the model)."""
     shown = app.frames_shown
     app.worker.refresh()
-    _until(app, lambda: app.frames_shown > shown and _sharp(app), 300)
+    _until(app, lambda: app.frames_shown > shown and _sharp(app), timeout)
 
 
 def _until(app, pred, timeout: float) -> None:
