@@ -143,8 +143,8 @@ def test_the_view_shows_a_portrait_capture_upright_in_its_frame(portrait_room, x
         image = shot[int(oy):int(oy) + h, int(ox):int(ox) + w].astype(np.int32)
         assert image.std() > 5, "the render fills the frame"
         app.state.photo_frame = False
-        run_until(app, lambda: full_frame(app), timeout=120)
-        assert app.view_size[0] > app.view_size[1]
+        frames(app, 2)
+        assert app.view_size[0] > app.view_size[1] and app.image_origin[0] < ox
     finally:
         app.close()
         window.close()
