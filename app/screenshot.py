@@ -196,7 +196,10 @@ def _capture_pictures(app, args, out: Path, name: str) -> None:
     _until(app, lambda: s.scene_info.get("loaded"), 1800)
     app.set_training(False)
     _until(app, lambda: _sharp(app), 3600)
-    _shot(app, out / f"{name}_view.png")
+    from repaint_nerf.app.window import mouse_event
+
+    app.window.inject(mouse_event(app.image_origin[0] + 4, app.image_origin[1] + 4))  # the pointer off the panels:
+    _shot(app, out / f"{name}_view.png")  # no tooltip in the picture
     s.tool = "select"
     _until(app, lambda: app.shown_key == app.requested_key, 3600)
     _drag_patch(app, tuple(float(v) for v in args.patch.split(",")), lambda: None)
