@@ -14,6 +14,18 @@ import numpy as np
 from repaint_nerf.core.scene.cameras import Cameras, look_at
 
 
+def fit_aspect(width: float, height: float, aspect: float | None) -> tuple[int, int, int, int]:
+    """(x, y, w, h): the largest rectangle of `aspect` (width / height) centred in a width x height area, in whole
+    pixels (the area itself for no aspect). The view shows a capture's photo frame this way: a portrait capture in a
+    landscape window is neither stretched nor cropped, and the sides nobody photographed are not rendered."""
+    width, height = max(int(width), 1), max(int(height), 1)
+    if not aspect or not math.isfinite(aspect) or aspect <= 0:
+        return 0, 0, width, height
+    w, h = (width, max(round(width / aspect), 1)) if width / height < aspect else (max(round(height * aspect), 1), height)
+    w, h = min(w, width), min(h, height)
+    return (width - w) // 2, (height - h) // 2, w, h
+
+
 def _unit(v: np.ndarray) -> np.ndarray:
     n = float(np.linalg.norm(v))
     return v / n if n > 1e-12 else v

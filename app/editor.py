@@ -17,7 +17,7 @@ import numpy as np
 from imgui_bundle import imgui
 
 from repaint_nerf.app import menu_bar
-from repaint_nerf.app.camera_control import CameraControl
+from repaint_nerf.app.camera_control import CameraControl, fit_aspect
 from repaint_nerf.app.guide import Guide
 from repaint_nerf.app.panels import repaint as repaint_panel
 from repaint_nerf.app.panels import scene as scene_panel
@@ -263,6 +263,13 @@ class EditorApp:
             s.error = f"worker error in {msg.where}:\n{msg.text}"
             s.training = False
 
+    def photo_aspect(self) -> float | None:
+        """Width / height of the scene's first training photo (None before a scene is loaded)."""
+        cams = self.state.scene_info.get("cameras")
+        if cams is None or len(cams) == 0:
+            return None
+        return float(cams.width[0]) / max(float(cams.height[0]), 1.0)
+
     # ---- input over the viewport image
     def _image_pos(self, io) -> tuple[float, float]:
         return ((io.mouse_pos.x - self.image_origin[0]) / max(self.view_size[0], 1),
@@ -334,11 +341,14 @@ class EditorApp:
         imgui.push_style_var(imgui.StyleVar_.window_padding, imgui.ImVec2(0, 0))
         imgui.begin("Viewport", None, flags)
         avail = imgui.get_content_region_avail()
-        self.view_size = (max(int(avail.x), 8), max(int(avail.y), 8))
         pos = imgui.get_cursor_screen_pos()
-        self.image_origin = (pos.x, pos.y)
+        x, y, w, h = fit_aspect(avail.x, avail.y, self.photo_aspect() if self.state.photo_frame else None)
+        self.view_size = (max(w, 8), max(h, 8))
+        self.image_origin = (pos.x + x, pos.y + y)
+        imgui.set_cursor_screen_pos(imgui.ImVec2(*self.image_origin))
         tex = self.viewport.draw(self.view_size, self.state.view_mode, self.state.threshold)
-        self._covered = tex is not None  # the image and the opaque panel window cover the whole screen
+        # the image and the opaque panel window cover the whole screen, unless the photo frame leaves bars beside it
+        self._covered = tex is not None and (w, h) == (max(int(avail.x), 1), max(int(avail.y), 1))
         if tex is not None:
             imgui.image(imgui.ImTextureRef(tex.glo), imgui.ImVec2(*self.view_size))
         else:

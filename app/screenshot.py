@@ -5,6 +5,9 @@ first-run hints, and walks the first edit as a user does: the scene opened, trai
 threshold moved, a Repaint with the offline guidance, the two versions compared, and a mesh exported and drawn by
 another program (trimesh + matplotlib). Writes the PICTURES below into --out-dir (`screenshot.png` is the
 README's first picture). Run it again whenever the UI changes.
+
+With `--capture WS` it pictures any trained workspace instead (a real capture: its opening view, a patch selection,
+an offline Repaint), e.g. `python -m repaint_nerf.app.screenshot --capture ws/fox --patch 0.62,0.28,0.78,0.38`.
 """
 from __future__ import annotations
 
@@ -46,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prompt", default="make it blue", help="the Repaint prompt (offline guidance)")
     p.add_argument("--repaint-steps", type=int, default=150)
     p.add_argument("--mesh-resolution", type=int, default=96)
+    p.add_argument("--capture", default=None, metavar="WS",
+                   help="instead of the walkthrough: pictures of the trained workspace WS of any scene (a real "
+                        "capture): NAME_view.png, NAME_patch.png (the selection of --patch) and with --repaint-steps "
+                        "> 0 NAME_repaint.png (--prompt, offline guidance); WS is copied, not changed")
+    p.add_argument("--name", default=None, help="--capture: the pictures' name prefix (default: the folder's name)")
     args = p.parse_args(argv)
 
     tmp = Path(tempfile.mkdtemp(prefix="repaint-nerf-shots-"))
@@ -57,6 +65,11 @@ def main(argv: list[str] | None = None) -> int:
         xvfb, os.environ["DISPLAY"] = start_xvfb(97, 140)
     out = Path(args.out_dir)
     try:
+        if args.capture:
+            shutil.copytree(args.capture, tmp / "ws")
+            with _editor(args, tmp / "ws", path=str(tmp / "ws")) as app:
+                _capture_pictures(app, args, out, args.name or Path(args.capture).resolve().name)
+            return 0
         with _editor(args, tmp / "fresh") as app:  # a new workspace: the field is still forming
             _until(app, lambda: app.state.scene_info.get("loaded") and _step(app) >= 10 and _sharp(app), 600)
             _shot(app, out / "walkthrough_1_open.png")
@@ -71,14 +84,15 @@ def main(argv: list[str] | None = None) -> int:
 
 
 @contextlib.contextmanager
-def _editor(args, workspace: Path) -> Iterator:
-    """The editor on the demo scene in `workspace`, in a window of the asked size; closed on leaving."""
+def _editor(args, workspace: Path, path: str | None = None) -> Iterator:
+    """The editor on `path` (None: the demo scene) in `workspace`, in a window of the asked size; closed on
+    leaving."""
     from repaint_nerf.app.editor import EditorApp
     from repaint_nerf.app.window import Window
     from repaint_nerf.core.engine import Engine
 
     window = Window(width=args.width, height=args.height)
-    app = EditorApp(window, Engine(), None, str(workspace))
+    app = EditorApp(window, Engine(), path, str(workspace))
     try:
         yield app
     finally:
@@ -175,6 +189,34 @@ def _walkthrough(app, args, out: Path, tmp: Path) -> None:
     print(f"wrote {out / 'walkthrough_7_export.png'}")
 
 
+def _capture_pictures(app, args, out: Path, name: str) -> None:
+    """A trained workspace as a user meets it: its opening view (a training camera's, in the photos' frame), a patch
+    selection over --patch, and an offline Repaint of it; training stays off so the pictures show that field."""
+    s = app.state
+    _until(app, lambda: s.scene_info.get("loaded"), 1800)
+    app.set_training(False)
+    _until(app, lambda: _sharp(app), 3600)
+    from repaint_nerf.app.window import mouse_event
+
+    app.window.inject(mouse_event(app.image_origin[0] + 4, app.image_origin[1] + 4))  # the pointer off the panels:
+    _shot(app, out / f"{name}_view.png")  # no tooltip in the picture
+    s.tool = "select"
+    _until(app, lambda: app.shown_key == app.requested_key, 3600)
+    _drag_patch(app, tuple(float(v) for v in args.patch.split(",")), lambda: None)
+    _until(app, lambda: s.has_selection, 1800)
+    _refreshed(app, 3600)
+    _shot(app, out / f"{name}_patch.png")
+    if args.repaint_steps > 0:
+        s.tool, s.view_mode = "navigate", "rgb"
+        s.prompt, s.backend, s.repaint_config.steps = args.prompt, "offline", args.repaint_steps
+        app.start_repaint()
+        _until(app, lambda: s.repaint_running, 3600)
+        _until(app, lambda: not s.repaint_running, 3600)
+        app.set_training(False)
+        _refreshed(app, 3600)
+        _shot(app, out / f"{name}_repaint.png")
+
+
 def _drag_patch(app, patch: tuple[float, ...], mid_drag: Callable[[], object]) -> None:
     """Press, drag and release over `patch` (fractions of the view) by injected mouse input, as a user does;
     `mid_drag` runs while the rectangle is drawn and the button still down."""
@@ -211,11 +253,11 @@ def _sharp(app) -> bool:
     return f is not None and f.final and app.shown_key == app.requested_key
 
 
-def _refreshed(app) -> None:
+def _refreshed(app, timeout: float = 300) -> None:
     """Until a new full-resolution frame of the current view is on screen (after a change of the model)."""
     shown = app.frames_shown
     app.worker.refresh()
-    _until(app, lambda: app.frames_shown > shown and _sharp(app), 300)
+    _until(app, lambda: app.frames_shown > shown and _sharp(app), timeout)
 
 
 def _until(app, pred, timeout: float) -> None:

@@ -65,6 +65,7 @@ class EditorState:
     video_height: int = 720  # pixels; the width follows the viewport's aspect
     export_job: ExportJob | None = None
     snap_index: int = 0
+    photo_frame: bool = True  # the view keeps the training photos' aspect (a portrait capture shows portrait)
     messages: list = field(default_factory=list)  # (kind, text); kind in info / error
     error: str | None = None  # the last worker crash, shown until dismissed
     capabilities: dict = field(default_factory=dict)

@@ -73,6 +73,14 @@ class Crashed:
     text: str
 
 
+def _pixels(cameras: Any) -> int | None:
+    """Pixels of camera 0 of a `Cameras` (None for anything else, e.g. a test's stand-in view)."""
+    try:
+        return int(cameras.width[0]) * int(cameras.height[0])
+    except (AttributeError, TypeError, IndexError):
+        return None
+
+
 class Worker:
     """Owns `engine` on a background thread. The UI calls `request_render`, `call`, `poll`."""
 
@@ -196,7 +204,7 @@ class Worker:
         served_serial, served_scale = self._served
         resting = (time.perf_counter() - req.time) >= self.rest_s
         if served_serial != req.serial:
-            return self.controller.scale
+            return self.controller.for_view(_pixels(req.cameras))
         if self._preview_due and resting:
             self._preview_due = False  # the model trained: re-render the resting view sharp, not coarse-first
             return 1.0

@@ -23,6 +23,8 @@ from repaint_nerf.core.train.stage1 import CHECKPOINT_NAME, Stage1Trainer, Train
 from repaint_nerf.core.workspace.workspace import MARKER, Workspace
 
 WORKSPACE_SUFFIX = ".repaint-nerf"
+# settings key: the training images (names, in order) of the reconstruction; its appearance codes index them
+TRAIN_FRAMES = "train_frames"
 
 
 def is_workspace(path: str | Path) -> bool:
@@ -78,9 +80,10 @@ def scene_root(ws: Workspace, facts: SceneFacts | None = None) -> Path:
     return Path(root)
 
 
-def _load_with_settings(path: Path, ws: Workspace, kind: str | None) -> Scene:
-    """Load `path` with the workspace's saved downscale and photo size cap (so a reopened scene matches)."""
-    settings = ws.settings
+def _load_with_settings(path: Path, ws: Workspace, kind: str | None, settings: dict | None = None) -> Scene:
+    """Load `path` with the workspace's saved downscale, photo size cap and frame selection (so a reopened scene
+    matches), or with `settings` where given (a run that has not saved its choices yet)."""
+    settings = ws.settings if settings is None else settings
     return load_scene(path, float(settings.get("downscale", 1.0)), kind=kind, workspace=ws.root,
                       max_size=int(settings.get("max_size", DEFAULT_MAX_SIZE)),
                       sharpness_discard=settings.get("sharpness_discard"))
@@ -155,11 +158,14 @@ class Reconstruction:
     notes: list[str] = field(default_factory=list)
 
 
-def _workspace_for(data: Path | None, workspace: str | Path | None, load_as: LoadAs | None) -> tuple[Workspace, Path]:
-    """(workspace, scene path): an existing workspace names its scene; data gets one beside it by default."""
+def _workspace_for(data: Path | None, workspace: str | Path | None, load_as: LoadAs | None,
+                   resume: bool) -> tuple[Workspace, Path, dict]:
+    """(workspace, scene path, the load settings this run asks for, to save once the scene has loaded): an existing
+    workspace names its scene; data gets one beside it by default. A resumed run that does not name a sharpness
+    threshold keeps the one the workspace was trained with (it chose the training images)."""
     if data is None or is_workspace(data):
         ws = Workspace.open(data if data is not None else workspace)
-        return ws, scene_root(ws)
+        return ws, scene_root(ws), {}
     if not data.exists():
         raise UserError("no such dataset, photo folder or workspace", data,
                         hint="check the path, or open the demo scene")
@@ -169,11 +175,40 @@ def _workspace_for(data: Path | None, workspace: str | Path | None, load_as: Loa
     if old and old != key and (ws.original_version is not None or ws.current_version is not None):
         raise WorkspaceError(f"this workspace holds a reconstruction of another scene ({old})", ws.root,
                              hint="pass another --workspace folder")
-    ws.update_settings(scene=key, **({} if load_as is None else {"downscale": load_as.downscale,
-                                                                  "kind": load_as.kind,
-                                                                  "max_size": load_as.max_size,
-                                                                  "sharpness_discard": load_as.sharpness_discard}))
-    return ws, data
+    chosen: dict = {"scene": key}
+    if load_as is not None:
+        sharpness = load_as.sharpness_discard
+        if sharpness is None and resume:
+            sharpness = ws.settings.get("sharpness_discard")
+        chosen.update(downscale=load_as.downscale, kind=load_as.kind, max_size=load_as.max_size,
+                      sharpness_discard=sharpness)
+    return ws, data, chosen
+
+
+def check_training_frames(ws: Workspace, scene: Scene, header: CheckpointHeader) -> None:
+    """Raise a WorkspaceError when `scene` would resume the workspace's checkpoint on other training images than it
+    was trained on (another --sharpness-discard, photos added or removed): the field's appearance codes, one per
+    training image in order, would belong to other photos. The images are those saved under TRAIN_FRAMES; a
+    workspace from before that was saved is checked by the count of its codes."""
+    names = list(scene.train.names)
+    saved = ws.settings.get(TRAIN_FRAMES)
+    codes = header.field_cfg().appearance_count if header.field_cfg().appearance_dim > 0 else 0
+    if saved is not None and list(saved) == names or saved is None and codes in (0, len(names)):
+        return
+    if saved is None:
+        what = f"its field has appearance codes for {codes} training images, this load gives {len(names)}"
+    else:
+        gone, new = [n for n in saved if n not in set(names)], [n for n in names if n not in set(saved)]
+        what = f"it was trained on {len(saved)} training images, this load gives {len(names)}"
+        what += "".join(f"; {label} {len(v)} (e.g. {v[0]})" for label, v in (("left out", gone), ("new", new)) if v)
+        if not gone and not new:
+            what += " in another order"
+    sharp = ws.settings.get("sharpness_discard")
+    raise WorkspaceError(f"cannot resume: the training images changed ({what}), so the per-image appearance codes "
+                         f"and the training state would belong to other photos", ws.root,
+                         hint=f"resume with the selection it was trained with (--sharpness-discard "
+                              f"{'left out' if sharp is None else sharp}, the same photos), or train into a new "
+                              f"--workspace")
 
 
 def start_reconstruction(data: str | Path | None, workspace: str | Path | None = None, *,
@@ -191,10 +226,13 @@ def start_reconstruction(data: str | Path | None, workspace: str | Path | None =
     from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
 
     device = device if isinstance(device, torch.device) else get_device(device)
-    ws, scene_path = _workspace_for(Path(data) if data is not None else None, workspace, load_as)
-    settings = ws.settings
-    scene = _load_with_settings(scene_path, ws, settings.get("kind"))  # the SfM of a photo folder is cached there
+    ws, scene_path, chosen = _workspace_for(Path(data) if data is not None else None, workspace, load_as, resume)
+    settings = {**ws.settings, **chosen}
+    scene = _load_with_settings(scene_path, ws, settings.get("kind"), settings)  # a photo folder's SfM is cached there
     header = saved_header(ws) if resume else None
+    if header is not None:
+        check_training_frames(ws, scene, header)  # before the settings change: a refused run leaves them as they were
+    ws.update_settings(**chosen, **{TRAIN_FRAMES: list(scene.train.names)})
     field_cfg = header.field_cfg() if header else None
     if header and prefer_saved_config and header.train_cfg() is not None:
         train_cfg = header.train_cfg()

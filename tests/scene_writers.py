@@ -122,13 +122,14 @@ def distort(img: np.ndarray, fx: float, fy: float, cx: float, cy: float, k1: flo
 
 
 def write_ngp_capture(scene_dir: Path, out: Path, missing=(), sharpness=None, extra: dict | None = None,
-                      gains=None, alpha: bool = True, lens: dict | None = None) -> dict:
+                      gains=None, alpha: bool = True, lens: dict | None = None, width: int | None = None) -> dict:
     """An instant-ngp style capture from a generated scene: one `transforms.json` listing its train and test
     frames (file paths images/NNNN.png), with per-frame `sharpness` when given, the frames numbered in `missing`
     listed without their image, `extra` top-level keys (e.g. aabb_scale) and per-frame RGB `gains` (exposure /
     white balance) multiplied into the images' colour; `alpha=False` drops a transparent background's alpha (an
 opaque photo of the object on a plain background); `lens` {k1, k2, p1, p2} distorts the images as that lens
-would and writes the coefficients. Returns the JSON written."""
+would and writes the coefficients; `width` keeps that many central columns (a portrait capture from square
+renders). Returns the JSON written."""
     frames, meta = [], None
     for split in ("train", "test"):
         m = json.loads((Path(scene_dir) / f"transforms_{split}.json").read_text())
@@ -146,12 +147,18 @@ would and writes the coefficients. Returns the JSON written."""
         img = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
         img = img[..., :3] if not alpha else img
+        if width is not None:
+            x0 = (img.shape[1] - width) // 2
+            img = img[:, x0:x0 + width]
         if gains is not None:
             rgb = img[..., :3].astype(np.float32) * np.asarray(gains[i], np.float32) + 0.5
             img = np.concatenate([np.clip(rgb, 0, 255).astype(np.uint8), img[..., 3:]], axis=-1)
         if lens:
-            img = distort(img, meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], **lens)
+            cx = meta["cx"] - (meta["w"] - width) // 2 if width is not None else meta["cx"]
+            img = distort(img, meta["fl_x"], meta["fl_y"], cx, meta["cy"], **lens)
         write_image(out / "images" / f"{i:04d}.png", img)
+    if width is not None:
+        meta = {**meta, "w": width, "cx": meta["cx"] - (meta["w"] - width) // 2}
     data = {**meta, **(lens or {}), **(extra or {}), "frames": out_frames}
     out.mkdir(parents=True, exist_ok=True)
     (out / "transforms.json").write_text(json.dumps(data))

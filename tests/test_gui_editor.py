@@ -405,7 +405,7 @@ def test_a_moved_view_is_not_redrawn_stale_while_it_renders(editor):
     try:
         editor.camera.orbit(30, 0)
         presented, n, t0 = editor.frames_presented, 0, time.perf_counter()
-        x0 = editor.image_origin[0] + editor.view_size[0] + 40  # over the panels: input that keeps frames coming
+        x0 = editor.window.framebuffer_size()[0] - 100  # over the panels: input that keeps frames coming
         while n == 0 or editor.shown_key != editor.requested_key:
             editor.window.inject(mouse(x0 + n % 2, 300))
             editor.frame()

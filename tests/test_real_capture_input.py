@@ -243,3 +243,38 @@ def test_a_nerf_synthetic_test_split_without_images_is_left_out_with_a_warning(s
     shutil.rmtree(root / "train")
     with pytest.raises(SceneError, match="none of the 6 frames has its image"):
         _load(root)
+
+
+def test_resume_keeps_the_frame_selection_its_appearance_codes_index(scene_factory, tmp_path, capsys):
+    """A resumed training must see the training images its appearance codes (one per image, in order) were made
+    for: leaving --sharpness-discard out keeps the workspace's; another value that picks other frames is refused
+    with a message saying which value to use, and the refused run leaves the workspace's settings as they were."""
+    from repaint_nerf.app.cli import main
+    from repaint_nerf.core.workspace.workspace import Workspace
+
+    src = scene_factory("demo", size=16, views=12, test_views=4)
+    sharp = np.full(16, 100.0)
+    sharp[[5, 11]] = 30.0  # two blurry training frames (0 and 8 are held out)
+    write_ngp_capture(src, tmp_path / "cap", sharpness=sharp)
+    ws = tmp_path / "ws"
+    base = ["train", str(tmp_path / "cap"), "--workspace", str(ws), "--rays", "256", "--max-samples", "64",
+            "--no-features", "--no-depth"]
+    assert main(base + ["--steps", "2", "--sharpness-discard", "0"]) == 0
+    frames = Workspace.open(ws).settings["train_frames"]
+    assert len(frames) == 14 and "images/0005.png" in frames
+    capsys.readouterr()
+    assert main(base + ["--steps", "3", "--sharpness-discard", "0.8", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume" in err and "left out 3 (e.g. images/0005.png)" in err and "--sharpness-discard 0" in err, err
+    settings = Workspace.open(ws).settings
+    assert settings["sharpness_discard"] == 0 and settings["train_frames"] == frames
+    assert main(base + ["--steps", "3", "--resume"]) == 0  # no value given: the workspace's
+    assert "resumed at step 2" in capsys.readouterr().out
+    assert Workspace.open(ws).settings["train_frames"] == frames
+    # a workspace from before the frames were saved: its codes' count decides
+    Workspace.open(ws).update_settings(train_frames=None)
+    assert main(base + ["--steps", "4", "--sharpness-discard", "0.8", "--resume"]) == 2
+    assert "appearance codes for 14 training images, this load gives 12" in capsys.readouterr().err
+    # a new training (no --resume) may choose other frames
+    assert main(base + ["--steps", "2", "--sharpness-discard", "0.8"]) == 0
+    assert len(Workspace.open(ws).settings["train_frames"]) == 12

@@ -41,3 +41,17 @@ def test_converges_on_a_quadratic_cost_model():
     for _ in range(6):
         c.update(160.0 * c.scale ** 2)  # render cost ~ pixels ~ scale^2; full res costs 160 ms
     assert abs(160.0 * c.scale ** 2 - 40.0) <= 0.2 * 40.0
+
+
+def test_the_first_view_renders_a_bounded_number_of_rays_then_the_measured_time_rules():
+    """A scene opens with at most FIRST_FRAME_RAYS rays (a foggy real capture costs ~1 ms a ray on a CPU); a view
+    smaller than that keeps the controller's scale; once a frame is measured the size no longer caps it."""
+    from repaint_nerf.app.resolution import FIRST_FRAME_RAYS
+
+    c = DynamicResolution(target_ms=40.0, scale=0.25)
+    s = c.for_view(439 * 781)  # the fox capture's photo frame in a 1280x800 window
+    assert math.isclose(s, math.sqrt(FIRST_FRAME_RAYS / (439 * 781))) and (s * 439) * (s * 781) <= FIRST_FRAME_RAYS + 1
+    assert DynamicResolution(scale=0.25).for_view(100 * 100) == 0.25 and DynamicResolution().for_view(None) == 0.25
+    assert DynamicResolution(scale=0.25).for_view(10 ** 9) == 1.0 / 16.0  # never below the floor
+    c.update(1.0, at_scale=s)  # far faster than the target: the next views render finer than the cap
+    assert c.for_view(439 * 781) > s

@@ -71,3 +71,21 @@ def test_a_move_cancels_the_refinement_of_a_resting_view():
     assert any(c == "a" and s > first_scale and what == "cancelled" for c, s, what in engine.log), engine.log
     assert worker.cancelled == sum(what == "cancelled" for _, _, what in engine.log) >= 1 and worker.dropped == 0
     assert frames and frames[0].key == ("b",)
+
+
+def test_the_first_frame_of_a_large_view_renders_a_bounded_number_of_rays():
+    """Before any frame is measured, a 439x781 view (a portrait capture in a 1280x800 window) is first rendered with at
+    most FIRST_FRAME_RAYS rays, not at the controller's 0.25 (21k rays: 33 s on the 70-step fox capture)."""
+    from repaint_nerf.app.resolution import FIRST_FRAME_RAYS
+    from repaint_nerf.core.scene.cameras import Cameras
+
+    engine = SlowEngine()
+    worker = Worker(engine, rest_s=10.0).start()
+    try:
+        view = Cameras.create(np.eye(4), 500.0, 500.0, 219.5, 390.5, 439, 781)
+        worker.request_render(view, key=("v",))
+        _frames(worker, lambda fs: len(fs) >= 1)
+    finally:
+        worker.stop()
+    scale = engine.log[0][1]
+    assert 0 < (scale * 439) * (scale * 781) <= FIRST_FRAME_RAYS + 1 and scale < 0.25

@@ -29,6 +29,9 @@ def draw(app) -> None:
     cam = app.camera
     if cam is None:
         return
+    _, s.photo_frame = imgui.checkbox("Photo frame", s.photo_frame)
+    imgui.set_item_tooltip("show the view in the training photos' aspect (a portrait capture shows portrait); "
+                           "off: fill the whole view area")
     changed, fov = imgui.slider_float("Field of view", cam.fov_y, 10.0, 120.0, "%.0f deg")
     imgui.set_item_tooltip("the view's vertical field of view")
     if changed:
