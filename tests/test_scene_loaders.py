@@ -189,6 +189,24 @@ def test_llff_prefers_images_n_for_downscale(tmp_path):
     assert float(scene.train.cameras.fx[0]) == 7.0 and int(scene.train.cameras.width[0]) == 8
 
 
+def test_llff_reads_a_shrunk_copy_that_covers_max_size_instead_of_the_full_photos(tmp_path):
+    """Big LLFF photos are not decoded to be shrunk when an images_N/ copy reaches (90% of) max_size."""
+    poses = _forward_poses(3)
+    write_llff(tmp_path, poses, h=48, w=64, focal=56.0, bounds=np.tile([2.0, 6.0], (3, 1)))
+    small = write_llff(tmp_path / "s", poses, h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (3, 1)),
+                       folder="images_4")
+    (tmp_path / "images_4").mkdir()
+    for i, im in enumerate(small):
+        write_image(tmp_path / "images_4" / f"IMG_{i:03d}.png", im)
+    scene = load_scene(tmp_path, max_size=17)  # 16 >= 0.9 * 17: the copy stands in
+    assert scene.extra["images_dir"] == "images_4" and np.array_equal(scene.train.images[0], small[1])
+    assert float(scene.train.cameras.fx[0]) == 14.0 and int(scene.train.cameras.width[0]) == 16
+    full = load_scene(tmp_path, max_size=32)  # 16 < 0.9 * 32: read the photos and fit them to 32
+    assert full.extra["images_dir"] == "images" and int(full.train.cameras.width[0]) == 32
+    (tmp_path / "images_4" / "IMG_002.png").unlink()  # an incomplete copy is never used
+    assert load_scene(tmp_path, max_size=17).extra["images_dir"] == "images"
+
+
 # ---------------------------------------------------------------- COLMAP
 
 
