@@ -68,19 +68,19 @@ def test_orbit_centre_is_the_object_the_cameras_look_at(portrait_room, scene_fac
 
 
 class _FarShell(torch.nn.Module):
-    """A wall of density on the L-inf shell 3.0 <= |x| <= 3.6 (field units), far outside the unit cube, marched as the
+    """A wall of density on the L-inf shell lo <= |x| <= hi (field units), outside the unit cube, marched as the
     real field it stands in for (its warp's extent and cone)."""
 
-    def __init__(self, real):
+    def __init__(self, real, lo: float, hi: float):
         super().__init__()
-        self.real = real
+        self.real, self.lo, self.hi = real, lo, hi
 
     def march(self):
         return self.real.march()
 
     def density(self, x):
         n = x.abs().amax(-1)
-        return 50.0 * ((n >= 3.0) & (n <= 3.6)).float()
+        return 50.0 * ((n >= self.lo) & (n <= self.hi)).float()
 
     def forward(self, x, d, outputs=("rgb",), **kw):
         out = {"sigma": self.density(x)}
@@ -90,22 +90,26 @@ class _FarShell(torch.nn.Module):
 
 
 def test_the_view_reaches_far_content_beyond_the_cube(portrait_room, tmp_path):
-    """The editor's renders march a contracted scene to its aabb_scale reach: a wall 3 field units out shows in
-    every pixel of the opening view, at its distance."""
+    """The editor's renders march a contracted scene to its aabb_scale reach (field units of the cube that holds the
+    cameras): a wall beyond the unit cube, near that reach, shows in every pixel of the opening view, at its
+    distance."""
     from repaint_nerf.app.camera_control import CameraControl
     from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.field.contraction import contract_extent
 
-    path, _ = portrait_room
+    path, scene = portrait_room
     engine = Engine("cpu", features=False, depth=False)
     info = engine.load(path, tmp_path / "ws")
-    assert engine.field.march()[0] == 4.0  # aabb_scale 4
-    engine.field = _FarShell(engine.field)
+    reach = engine.field.march()[0]
+    assert reach == pytest.approx(contract_extent(scene)) and reach > 1.5  # aabb_scale 4, in the grown cube
+    lo, hi = 1.0 + 0.6 * (reach - 1.0), 1.0 + 0.9 * (reach - 1.0)
+    engine.field = _FarShell(engine.field, lo, hi)
     engine.grid.occupied[:] = True  # a fresh grid: every cell may hold content
     cams = CameraControl.framing(info["cameras"]).cameras(*PORTRAIT)
     out = engine.render(cams, outputs=("rgb", "depth", "opacity"))
     assert out["opacity"].min() > 0.9, out["opacity"].min()
     eye = cams.c2w[0, :3, 3].numpy()
-    assert np.abs(eye).max() < 3.0 and np.median(out["depth"]) > 3.0 - np.abs(eye).max()
+    assert np.abs(eye).max() <= 1.0 and np.median(out["depth"]) > lo - np.abs(eye).max()
 
 
 @pytest.mark.gui
