@@ -175,14 +175,20 @@ def test_llff_round_trip(tmp_path):
         assert np.all(np.abs(scene.norm.to_field((o + t * d).double().numpy())) <= 1.0)
 
 
-def test_llff_prefers_images_n_for_downscale(tmp_path):
-    poses = _forward_poses(3)
-    write_llff(tmp_path, poses, h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (3, 1)))
-    small = write_llff(tmp_path / "s", poses, h=6, w=8, focal=7.0, bounds=np.tile([2.0, 6.0], (3, 1)),
-                       folder="images_2")
-    (tmp_path / "images_2").mkdir()
+def _llff_with_copy(root, factor: int, h: int, w: int, focal: float) -> list:
+    """An LLFF scene of 3 views at h x w plus an images_<factor>/ copy shrunk by factor; returns the copy's images."""
+    poses, bounds = _forward_poses(3), np.tile([2.0, 6.0], (3, 1))
+    write_llff(root, poses, h=h, w=w, focal=focal, bounds=bounds)
+    small = write_llff(root / "s", poses, h=h // factor, w=w // factor, focal=focal / factor, bounds=bounds,
+                       folder=f"images_{factor}")
+    (root / f"images_{factor}").mkdir()
     for i, im in enumerate(small):
-        write_image(tmp_path / "images_2" / f"IMG_{i:03d}.png", im)
+        write_image(root / f"images_{factor}" / f"IMG_{i:03d}.png", im)
+    return small
+
+
+def test_llff_prefers_images_n_for_downscale(tmp_path):
+    small = _llff_with_copy(tmp_path, 2, 12, 16, 14.0)
     scene = load_scene(tmp_path, downscale=2)
     assert scene.extra["images_dir"] == "images_2"
     assert np.array_equal(scene.train.images[0], small[1])
@@ -191,13 +197,7 @@ def test_llff_prefers_images_n_for_downscale(tmp_path):
 
 def test_llff_reads_a_shrunk_copy_that_covers_max_size_instead_of_the_full_photos(tmp_path):
     """Big LLFF photos are not decoded to be shrunk when an images_N/ copy reaches (90% of) max_size."""
-    poses = _forward_poses(3)
-    write_llff(tmp_path, poses, h=48, w=64, focal=56.0, bounds=np.tile([2.0, 6.0], (3, 1)))
-    small = write_llff(tmp_path / "s", poses, h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (3, 1)),
-                       folder="images_4")
-    (tmp_path / "images_4").mkdir()
-    for i, im in enumerate(small):
-        write_image(tmp_path / "images_4" / f"IMG_{i:03d}.png", im)
+    small = _llff_with_copy(tmp_path, 4, 48, 64, 56.0)
     scene = load_scene(tmp_path, max_size=17)  # 16 >= 0.9 * 17: the copy stands in
     assert scene.extra["images_dir"] == "images_4" and np.array_equal(scene.train.images[0], small[1])
     assert float(scene.train.cameras.fx[0]) == 14.0 and int(scene.train.cameras.width[0]) == 16
