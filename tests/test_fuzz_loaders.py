@@ -368,3 +368,14 @@ def test_cli_on_bad_input_leaves_a_clean_workspace(tmp_path, capsys):
     ws = Workspace.open(ws_root)
     assert ws.current_version is None and not list(ws.checkpoints_dir.iterdir())
     assert not list(ws_root.rglob(".*.tmp"))
+
+
+def test_a_symlinked_image_folder_inside_the_dataset_loads(tmp_path):
+    """Users link a big photo folder into the dataset instead of copying it: allowed, while '..' stays refused."""
+    src = tmp_path / "src"
+    write_blender(src, counts={"train": 3}, w=12, h=8)
+    root = tmp_path / "linked"
+    root.mkdir()
+    shutil.copy(src / "transforms_train.json", root / "transforms_train.json")
+    (root / "train").symlink_to(src / "train", target_is_directory=True)
+    assert len(load_scene(root).train) == 3

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -68,8 +69,9 @@ def find_image(root: Path, file_path: str, path: Path, i: int) -> Path | None:
     """The image file a frame names, relative to the JSON's folder, with or without an extension; None when
     it is not there (a path leaving the dataset folder is a `SceneError`)."""
     rel = str(file_path).replace("\\", "/")
-    p = (root / rel).resolve()
-    if Path(rel).is_absolute() or not p.is_relative_to(root.resolve()):
+    # lexically inside the folder ('..' cannot climb out); a symlinked images folder is the user's own choice
+    p = Path(os.path.normpath(root.absolute() / rel))
+    if Path(rel).is_absolute() or not p.is_relative_to(Path(os.path.normpath(root.absolute()))):
         raise SceneError(f"frame {i}: image '{file_path}' points outside the dataset folder", path,
                          hint="file_path must be relative to the folder of the JSON file and stay inside it")
     if p.is_file():
