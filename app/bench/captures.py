@@ -43,7 +43,7 @@ def _table(args: argparse.Namespace) -> int:
     from repaint_nerf.core.bench.captures import side_by_side
     from repaint_nerf.core.errors import UserError
 
-    rows = {}
+    rows, firsts = {}, []
     for item in args.table:
         name, _, files = item.partition("=")
         paths = [Path(f) for f in files.split(",") if f]
@@ -56,7 +56,10 @@ def _table(args: argparse.Namespace) -> int:
             raise UserError(f"cannot read {item!r}: {exc}", hint="give the JSON files bench recon and bench "
                                                                  "nerfacto wrote") from None
         rows[name] = side_by_side(loaded[0], loaded[1] if len(loaded) > 1 else None)
-    table = {"machine": args.machine, "report_at": ["60", "120", "300"], "captures": rows}
+        firsts.append(loaded[0])
+    devices = sorted({str(d.get("device")) for d in firsts if d.get("device")})
+    table = {"machine": args.machine, "device": ", ".join(devices) or "?", "report_at": ["60", "120", "300"],
+             "captures": rows}
     text = json.dumps(table, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")
