@@ -78,6 +78,31 @@ def test_the_object_is_the_longest_plateau_above_a_leak_not_a_slow_shrink_right_
     assert 0.55 <= value <= 0.72, value
 
 
+def test_an_object_of_two_parts_is_the_plateau_right_above_the_leak_not_its_longer_part():
+    """A printed can under the blended teacher, in shape: the patch's colour alone holds 0.38-0.98 (~330 px),
+    the whole can 0.12-0.32 (~760 px: a step of 1.9x joins its other colour), the room leaks in at 0.09.
+    The can is the plateau right above the leak (the old rule took the longer upper plateau: test IoU 0.52)."""
+    ts = np.round(np.arange(0.02, 0.985, 0.01), 2)
+    areas = np.select([ts < 0.09, ts < 0.34, ts < 0.37], [4800.0, 790.0 - 250.0 * (ts - 0.12), 700.0],
+                      385.0 - 160.0 * (ts - 0.37))
+    value, jump = choose_threshold(ts, np.round(areas), seed_area=121)
+    assert jump is not None and jump < 0.12
+    assert 0.15 <= value <= 0.30, value
+
+
+def test_a_leak_followed_by_a_slow_shrink_still_finds_the_plateau_above_it():
+    """The region covers most of the view up to 0.62, collapses by 3x within 0.04, shrinks ~10% per 0.02 for
+    a while, and settles on the object near 0.8: the object is that plateau, not the view's (the old rule
+    required the plateau within 0.08 of the leak and fell back to the view: test IoU 0.04 instead of 0.83)."""
+    ts = np.round(np.arange(0.02, 0.985, 0.01), 2)
+    areas = np.select([ts < 0.62, ts < 0.70, ts < 0.79, ts < 0.85],
+                      [6700.0, 6700.0 - 70000.0 * (ts - 0.62), 1100.0 * np.exp(-6.0 * (ts - 0.70)), 640.0],
+                      640.0 * np.exp(-8.0 * (ts - 0.85)))
+    value, jump = choose_threshold(ts, np.round(areas), seed_area=121)
+    assert jump is not None and 0.6 <= jump <= 0.7
+    assert 0.79 <= value <= 0.85, value
+
+
 def test_the_patch_view_uses_depth_edges_only_where_the_masks_can():
     """A disc (0.8) in front of a touching slab of a similar colour (0.6): smooth depth closes the disc with
     an edge, so its plateau runs to the bottom of the grid; on depth rougher than `DEPTH_EDGE` (where the
