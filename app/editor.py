@@ -91,7 +91,9 @@ class EditorApp:
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
-        self.worker.call(self.engine.load, path, self.state.workspace)
+        chosen = self.state.feature_model  # untouched (None): the engine keeps the workspace's choice, as before
+        self.worker.call(self.engine.load, path, self.state.workspace,
+                         **({} if chosen is None else {"feature_model": chosen}))
 
     def repair_workspace(self) -> None:
         """Repair the workspace that failed to open (the Scene panel's offer); it opens again when done."""

@@ -31,6 +31,7 @@ class EditorState:
     scene_info: dict = field(default_factory=dict)
     loading: bool = False
     repair_offer: str | None = None  # a workspace that failed to open as damaged: the Scene panel offers repair
+    feature_model: str | None = None  # the Scene panel's feature teacher for Open; None: untouched (as before)
     view_mode: str = "rgb"
     tool: str = "navigate"  # or "select"
     threshold: float = 0.5

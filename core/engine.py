@@ -116,16 +116,20 @@ class Engine:
         return out
 
     # ---- scene
-    def load(self, path: str | Path | None = None, workspace: str | Path | None = None) -> dict:
+    def load(self, path: str | Path | None = None, workspace: str | Path | None = None,
+             feature_model: str | None = None) -> dict:
         """Load a dataset, photo folder or saved workspace (None: the built-in demo scene) with its field.
 
         A workspace opens at its current version. Otherwise the workspace defaults to a folder next to the
         data (the dataset folder itself is never written to) and resumes its checkpoint when there is one.
+        `feature_model` (a built-in name such as 'efficientnet-lite0', or a model path / id) is the feature
+        teacher as `train --feature-model` takes it (a change of the saved one adds a note to `notes`); None keeps
+        the workspace's saved choice, else the environment's, else the built-in teacher.
         """
+        teachers = Teachers(features=self.use_features, depth=self.use_depth, feature_model=feature_model)
         rec = start_reconstruction(demo_scene_path() if path is None else path, workspace,
                                    train_cfg=self.train_cfg or editor_train_config(self.device),
-                                   teachers=Teachers(features=self.use_features, depth=self.use_depth),
-                                   device=self.device)
+                                   teachers=teachers, device=self.device)
         ws = rec.workspace
         self.scene, self.workspace, self.trainer, self.notes = rec.scene, ws, rec.trainer, rec.notes
         self.field, self.grid = rec.trainer.field, rec.trainer.grid

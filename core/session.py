@@ -141,7 +141,7 @@ class Teachers:
 
     features: bool = True
     depth: bool = True
-    feature_model: str | None = None  # an ONNX path or 'default'
+    feature_model: str | None = None  # a model path / id, or a built-in name (stage1_targets.NAMED_FEATURES)
     feature_size: tuple[int, int] | None = None  # (H, W)
     feature_norm: str | None = None
     depth_model: str | None = None  # an ONNX path or 'none'

@@ -186,3 +186,23 @@ def test_names_reach_the_factory_and_the_train_flag_check(monkeypatch):
                         lambda name, *a: None if name in feature_lite.PACKAGES else real(name, *a))
     with pytest.raises(ModelNotFoundError, match="repaint-nerf\\[lite\\]"):
         check_model_flags(args)
+
+
+def test_the_editor_lists_the_lite_teachers_only_when_the_extra_is_installed(monkeypatch):
+    """The editor's "Feature teacher" choices: the built-in one, the lite ones when their packages are found, then a
+    workspace's saved model (path or id) that is none of those; settings.json's record reads back as a name."""
+    from repaint_nerf.core.teachers.stage1_targets import (DEFAULT_FEATURE, LITE_BLEND, LITE_FEATURE, feature_choices,
+                                                           saved_feature_name)
+
+    assert feature_choices() == [DEFAULT_FEATURE, LITE_FEATURE, LITE_BLEND]  # the test extra installs it
+    assert feature_choices(None, LITE_BLEND, "/models/feat.onnx") == [DEFAULT_FEATURE, LITE_FEATURE, LITE_BLEND,
+                                                                     "/models/feat.onnx"]
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name in feature_lite.PACKAGES else real(name, *a))
+    assert feature_choices() == [DEFAULT_FEATURE]
+    assert feature_choices(LITE_FEATURE, None) == [DEFAULT_FEATURE, LITE_FEATURE]  # a saved choice still shows
+    assert saved_feature_name({}) is None
+    assert saved_feature_name({"feature_model": None}) == DEFAULT_FEATURE
+    assert saved_feature_name({"feature_model": {"path": LITE_BLEND, "input_size": None}}) == LITE_BLEND
+    assert saved_feature_name({"feature_model": "garbled"}) is None

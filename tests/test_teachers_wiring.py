@@ -161,6 +161,26 @@ def test_choice_order_flag_setting_env_default(tmp_path, models, monkeypatch):
     (models["feature"].parent / "features.onnx").unlink()
 
 
+def test_engine_load_with_a_chosen_teacher_trains_with_it_and_notes_a_change(scene, tmp_path):
+    """The editor's "Feature teacher" reaches Engine.load as `train --feature-model` does: a new workspace trains with
+    the chosen built-in teacher and saves it; another choice on reopening is noted (the editor shows the notes); no
+    choice keeps the saved one."""
+    from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.teachers.stage1_targets import LITE_BLEND
+
+    eng = Engine("cpu")
+    info = eng.load(scene[0], tmp_path / "ws", feature_model=LITE_BLEND)
+    assert eng.train_for(0.2)["step"] >= 1
+    saved = json.loads((tmp_path / "ws" / "settings.json").read_text())
+    assert saved["feature_model"]["path"] == LITE_BLEND and saved["teacher"] == LITE_BLEND
+    assert info["settings"]["feature_model"]["path"] == LITE_BLEND and not any("changed" in n for n in info["notes"])
+    eng.save()
+    info = eng.load(tmp_path / "ws", feature_model="default")
+    assert any(n.startswith("feature teacher changed to default") for n in info["notes"]), info["notes"]
+    info = eng.load(tmp_path / "ws")
+    assert info["settings"]["feature_model"] is None and not any("changed" in n for n in info["notes"])
+
+
 # -- depth teacher -------------------------------------------------------------------------------------------
 def _sparse_points(scene) -> "DepthPriors":
     """20 sparse depth points per training image (the 32 px demo triangulates too few to align to)."""

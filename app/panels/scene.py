@@ -7,11 +7,21 @@ import numpy as np
 from imgui_bundle import imgui, implot
 
 from repaint_nerf.app.panels.common import remember_item, unavailable
+from repaint_nerf.core.teachers.stage1_targets import (DEFAULT_FEATURE, LITE_BLEND, LITE_FEATURE, feature_choices,
+                                                       saved_feature_name)
 
 
 # What each phase's 'psnr' measures: stage 1 the step's training rays; a repaint the pixels Eq. unmask holds
 # to the photos (the selection changes on purpose, so a PSNR over it says nothing).
 PSNR_LABELS = {"reconstruct": "PSNR", "repaint": "unmasked PSNR"}
+# The "Feature teacher" combo's names and tooltips of the built-in teachers (a model path or id shows as itself).
+FEATURE_LABELS = {DEFAULT_FEATURE: "built-in", LITE_BLEND: "efficientnet-lite0 + built-in"}
+FEATURE_HELP = {
+    DEFAULT_FEATURE: "the built-in teacher: colour and texture pooled over superpixels; no model, nothing to install",
+    LITE_FEATURE: "EfficientNet-Lite0, an ImageNet network (the lite extra): tells objects apart by what they are",
+    LITE_BLEND: "EfficientNet-Lite0 and the built-in teacher, half and half: what things are and their colour",
+}
+OTHER_FEATURE_HELP = "the workspace's feature model: a model file, folder or model id"
 
 
 def status_line(st: dict) -> str:
@@ -25,6 +35,34 @@ def status_line(st: dict) -> str:
     return "  ".join(parts)
 
 
+def feature_label(name: str) -> str:
+    """How the "Feature teacher" combo names a teacher: 'built-in' for the default one, else its name or path."""
+    return FEATURE_LABELS.get(name, name)
+
+
+def _feature_teacher(app) -> None:
+    """The "Feature teacher" combo: what the next Open or Demo scene distils the field's features from (as
+    `train --feature-model`); untouched, it shows the loaded workspace's saved teacher and changes nothing."""
+    s = app.state
+    saved = saved_feature_name(s.scene_info.get("settings") or {})
+    shown = s.feature_model or saved
+    opened = imgui.begin_combo("Feature teacher", feature_label(shown) if shown else "automatic")
+    remember_item(app, "Feature teacher")
+    if not opened:
+        imgui.set_item_tooltip("what the field's features (selection) are distilled from, used when a scene is "
+                               "opened; untouched: the workspace's saved teacher, else $REPAINT_NERF_FEATURE_MODEL, "
+                               "else the built-in one")
+    else:
+        for name in feature_choices(saved, s.feature_model):
+            if imgui.selectable(feature_label(name), name == shown)[0]:
+                s.feature_model = name
+            remember_item(app, f"feature:{name}")
+            imgui.set_item_tooltip(f"{FEATURE_HELP.get(name, OTHER_FEATURE_HELP)} (train --feature-model {name})")
+        imgui.end_combo()
+    if s.feature_model and saved and s.feature_model != saved:
+        imgui.text_disabled("(used on the next Open or Demo scene)")
+
+
 def draw(app) -> None:
     s = app.state
     opened = imgui.collapsing_header("Scene and training", imgui.TreeNodeFlags_.default_open.value)
@@ -34,12 +72,14 @@ def draw(app) -> None:
     _, s.scene_path = imgui.input_text("Path", s.scene_path)
     imgui.set_item_tooltip("a folder of photos, a NeRF dataset (Blender, nerfstudio, LLFF, COLMAP) or a saved "
                            "workspace; then press Open")
+    _feature_teacher(app)
     opened = imgui.button("Open")
     imgui.set_item_tooltip("open the scene at Path (a photo folder is posed by structure from motion first)")
     if opened:
         app.open_scene(s.scene_path or None)
     imgui.same_line()
     demo = imgui.button("Demo scene")
+    remember_item(app, "Demo scene")
     imgui.set_item_tooltip("the built-in synthetic scene: needs no photos and no downloaded model")
     if demo:
         app.open_scene(None)

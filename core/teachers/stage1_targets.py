@@ -146,6 +146,30 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
     return fm, source
 
 
+def saved_feature_name(settings: dict) -> str | None:
+    """The feature teacher a workspace's settings name ('default', a built-in name, or a model path / id), for
+    the editor to show; None when it has not chosen one yet (or the record is malformed: opening says why)."""
+    if FEATURE_SETTING not in settings:
+        return None
+    value = settings[FEATURE_SETTING]
+    if value is None:
+        return DEFAULT_FEATURE
+    return str(value["path"]) if isinstance(value, dict) and value.get("path") else None
+
+
+def feature_choices(*current: str | None) -> list[str]:
+    """The feature teachers the editor offers: the built-in one, the lite ones only when the `lite` extra is
+    installed (its packages are found, not imported), then each of `current` (a workspace's saved model
+    path or id, the editor's last pick) that is none of those, so a choice made elsewhere still shows."""
+    from repaint_nerf.core.teachers.feature_lite import available
+
+    names = [DEFAULT_FEATURE] + ([LITE_FEATURE, LITE_BLEND] if available() else [])
+    for name in current:
+        if name and name not in names:
+            names.append(name)
+    return names
+
+
 def named_feature_teacher(name: str):
     """The teacher of a built-in name ('default', 'efficientnet-lite0', 'efficientnet-lite0+default'); the lite
     ones raise a ModelNotFoundError naming the pip command when the `lite` extra is not installed."""
