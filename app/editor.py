@@ -91,9 +91,8 @@ class EditorApp:
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
-        chosen = self.state.feature_model  # untouched (None): the engine keeps the workspace's choice, as before
-        self.worker.call(self.engine.load, path, self.state.workspace,
-                         **({} if chosen is None else {"feature_model": chosen}))
+        # the Scene panel's teacher; None (untouched): the engine keeps the workspace's choice, as before
+        self.worker.call(self.engine.load, path, self.state.workspace, feature_model=self.state.feature_model)
 
     def repair_workspace(self) -> None:
         """Repair the workspace that failed to open (the Scene panel's offer); it opens again when done."""

@@ -43,7 +43,7 @@ class AnalyticEngine:
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
 
-    def load(self, path, workspace=None):
+    def load(self, path, workspace=None, feature_model=None):
         poses = [look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]) for a in np.linspace(0, 6, 8)]
         cams = Cameras.create(np.stack(poses), 60.0, 60.0, 40.0, 40.0, 80, 80)
         from repaint_nerf.core.train.history import TrainingHistory

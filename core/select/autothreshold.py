@@ -109,15 +109,14 @@ def choose_threshold(thresholds: np.ndarray, areas: np.ndarray, seed_area: int =
 
     Plateaus count only where the region is more than the patch itself (`MIN_REGION` x `seed_area`): as t
     nears 1 only the patch is left, and the fall from the object to the patch is growth, not a leak. A
-    jump counts as a leak only with a plateau above it and no other jump between (a whole object, then more;
-    the region may shrink for a while above the leak before it settles). Above the leak, plateaus whose areas step by less than `PART_STEP` are one
-    region: right above a leak the region can shrink slowly for a while (a shadow or contact zone whose
-    similarity fades; on a trained room360 field the stretch ran 0.17-0.40 and the object's plateau
-    0.43-0.82, test IoU 0.48 at the former's middle and 0.98 at the latter's), and the object is that
-    region's longest plateau. A step of `PART_STEP` or more between plateaus above the leak is a part of the
-    object falling away (a printed can's two colours joined at 0.34 and leaked at 0.09 under the blended
-    teacher: test IoU 0.52 on the longer, upper plateau, 0.95 on the lower), so the region right above the
-    leak is the object.
+    jump counts as a leak only with a plateau above it and no other jump between (a whole object, then more).
+    Above the leak, plateaus whose areas step by less than `PART_STEP` are one region: right above a leak the
+    region can shrink slowly for a while (a shadow or contact zone whose similarity fades; on a trained
+    room360 field the stretch ran 0.17-0.40 and the object's plateau 0.43-0.82, test IoU 0.48 at the former's
+    middle and 0.98 at the latter's), and the object is that region's longest plateau. A step of `PART_STEP`
+    or more between plateaus above the leak is a part of the object falling away (a printed can's two colours
+    joined at 0.34 and leaked at 0.09 under the blended teacher: test IoU 0.52 on the longer, upper plateau,
+    0.95 on the lower), so the region right above the leak is the object.
     """
     a = np.maximum(np.asarray(areas, np.float64), 1.0)
     n = len(a)
@@ -226,7 +225,10 @@ def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=N
         barrier = o <= MIN_OPACITY
     else:
         barrier = None if z is None else ~(z > 0)
-    surface = o > MIN_OPACITY if o is not None else None if z is None else z > 0
+    if o is not None:
+        surface = o > MIN_OPACITY
+    else:
+        surface = None if z is None else z > 0
     return auto_threshold(s, seeds, barrier, surface=surface)
 
 
