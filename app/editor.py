@@ -75,6 +75,7 @@ class EditorApp:
         self._covered = False
         self.last_frame: Frame | None = None
         self.drag_start: tuple[float, float] | None = None
+        self._refine_after: float | None = None  # a patch's threshold the training views vote on next frame
         self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
         self.events: list = []  # (time, what) log for tests and the viewport benchmark
         self.guide = Guide(UserSettings())  # the first-run hint line (app.menu_bar draws it)
@@ -234,10 +235,14 @@ class EditorApp:
                 if msg.name == "select":  # a PatchSelected: the map and its automatic threshold
                     self.viewport.upload_similarity(msg.value.similarity)
                     selection_panel.take_auto_threshold(s, msg.value.auto_threshold)
+                    if msg.value.auto_threshold is not None:  # the training views vote on it, after this mask
+                        self._refine_after = msg.value.auto_threshold
                 else:
                     self.viewport.upload_similarity(msg.value)
                 if s.view_mode not in ("similarity", "mask"):
                     s.view_mode = "mask"
+            elif msg.name == "refine_threshold":
+                selection_panel.take_refined_threshold(s, msg.value)
             elif msg.name == "masks_for_all_views":
                 s.masks_done = int(msg.value)
             elif msg.name == "repaint":
@@ -440,6 +445,10 @@ class EditorApp:
         if present:
             self._last_present = self._frame_started
             self.frames_presented += 1
+            if self._refine_after is not None:  # once the patch's mask is on screen: the vote holds the worker
+                # (~0.5 s on 2 cores) and its Python work would slow the frame that shows the mask
+                self.call(self.engine.refine_threshold, self._refine_after)
+                self._refine_after = None
         return shot
 
     def _worth_drawing(self, msgs: list) -> bool:

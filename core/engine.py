@@ -35,6 +35,8 @@ OPTIONAL = {"sd": ("diffusers", "transformers")}
 # The viewport never renders finer than this multiple of the training images' long side (sharper than
 # the data adds nothing and costs seconds per frame on a CPU).
 MAX_RENDER_OVERSAMPLE = 2.0
+VOTE_SIDE = 128  # long side of the training views rendered to vote on a free-view patch's threshold (the
+# automatic threshold reads maps at 128 px at most: autothreshold.patch_auto_threshold_px)
 INTERACTIVE_CHUNK = 1 << 16  # samples per marching round of a cancellable (viewport) render
 
 
@@ -292,6 +294,37 @@ class Engine:
             auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera,
                                                view.expected_depth)
         return PatchSelected(similarity, auto)
+
+    def refine_threshold(self, own: float) -> float | None:
+        """The newest free-view patch's automatic threshold (`own`, what `select` returned) once the training
+        views that see its surface points vote (Selection.refine_auto_threshold): up to `geometry.VOTE_VIEWS`
+        of them, rendered at most `VOTE_SIDE` px on a side. The editor asks for it after the patch's mask is on
+        screen (a few hundred ms on a CPU). None when nothing with anchors is selected."""
+        from repaint_nerf.core.select.geometry import anchor_views
+        from repaint_nerf.core.select.masks import render_view_maps
+
+        self._need_scene()
+        sel = self.selection
+        if sel is None or not len(sel.anchors):
+            return None
+        cams = self.scene.field_cameras("train").to("cpu")
+        views = anchor_views(sel.anchor_points(), cams)
+        if not views:
+            return float(own)
+        voters = cams[torch.tensor(views, dtype=torch.long)]
+        side = max(int(voters.width.max()), int(voters.height.max()))
+        if side > VOTE_SIDE:
+            voters = voters.scaled(VOTE_SIDE / side)
+        opts = RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+        was_training = self.field.training
+        self.field.eval()
+        try:
+            with torch.no_grad():
+                on_device = voters.to(self.device)
+                maps = [render_view_maps(self.field, self.grid, on_device, i, opts) for i in range(len(views))]
+        finally:
+            self.field.train(was_training)
+        return sel.refine_auto_threshold(own, maps, voters)
 
     def select_text(self, cameras, text: str, mode: str = "new", clip_path: str | None = None) -> np.ndarray:
         """Start ('new') or extend ('add') the selection with a text query through the workspace's CLIP-aligned

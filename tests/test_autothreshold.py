@@ -649,3 +649,67 @@ def test_region_areas_equal_the_plain_labelling_on_random_maps():
         np.testing.assert_array_equal(region_areas(s, seeds, barrier), region_areas_reference(s, seeds, barrier))
     empty = np.zeros((8, 8), bool)
     assert not region_areas(np.ones((8, 8)), empty).any()
+
+
+def test_a_walled_object_of_two_colours_keeps_both_under_the_views_floor():
+    """A free view walls a printed can in with depth edges (its patch's colour fades 0.98 -> 0.55, its other
+    colour 0.42); the room around it is bright (0.8) and dim (0.45), so the view's split of similarities lies above
+    the can's second colour. The floor stops below the top of the walled plateau: both colours stay (the
+    floor alone kept only the patch's colour)."""
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold_px, view_split, walled_top
+
+    rng = np.random.default_rng(5)
+    h = w = 96
+    yy, xx = np.mgrid[:h, :w]
+    can = _disc(h, w, 48, 48, 18)
+    printed = can & (xx < 52)  # the patch's colour, a gradient
+    sim = np.where(yy < 70, 0.8, 0.45) + rng.normal(0.0, 0.01, (h, w))
+    sim[can] = 0.42
+    sim[printed] = np.linspace(0.98, 0.55, w)[xx[printed]]
+    depth = np.where(can, 2.0, 4.0).astype(np.float32)
+    opacity = np.ones((h, w), np.float32)
+    seeds = patch_pixels((h, w), (0.36, 0.45, 0.46, 0.55))
+    assert view_split(sim) > 0.45  # the floor alone cuts the can's second colour
+    a = patch_auto_threshold_px(sim, seeds, depth, opacity)
+    assert a.jump is None and walled_top(a.thresholds, a.areas, int(seeds.sum())) is not None
+    assert a.value < 0.42, a.value
+    assert _iou(grow(sim > a.value, seeds, depth_edges(depth, opacity)), can) > 0.95
+
+
+def test_walled_top_is_none_without_a_plateau_from_the_lowest_threshold():
+    from repaint_nerf.core.select.autothreshold import GRID, walled_top
+
+    # flat (within the +-0.02 window) to 0.47, less WALL_MARGIN steps
+    assert walled_top(GRID, np.where(GRID < 0.5, 800, 300), 100) == pytest.approx(0.45)
+    assert walled_top(GRID, np.maximum(8000 * np.exp(-10 * GRID), 300), 100) is None  # shrinking from 0.02
+
+
+def test_the_views_vote_only_where_their_region_leaks():
+    """views_threshold: the free view's own value and the leaking training views' take the median; a walled
+    view (no jump) does not vote, and with no leak the free view's value stands."""
+    from repaint_nerf.core.select.autothreshold import AutoThreshold, views_threshold
+
+    def view(value, jump):
+        return AutoThreshold(value, np.zeros(0), np.zeros(0), jump)
+
+    assert views_threshold(0.46, [view(0.75, 0.4), view(0.78, 0.5), view(0.2, None), view(0.3, None)]) == 0.75
+    assert views_threshold(0.42, [view(0.33, 0.2), view(0.73, 0.18), view(0.6, None)]) == 0.42
+    assert views_threshold(0.42, [view(0.9, None)]) == 0.42
+    assert views_threshold(0.42, []) == 0.42
+
+
+def test_anchor_views_are_the_views_that_frame_the_points_best():
+    """geometry.anchor_views: views with the points behind or outside the image are left out; of the rest, the
+    ones that see them nearest their centre come first, at most `limit`."""
+    from repaint_nerf.core.select.geometry import anchor_views
+
+    target = np.array([0.0, 0.0, 0.0])
+    eyes = [(0, -4, 0), (0.0, -4, 0), (4, 0, 0), (0, 4, 0), (0, -4, 0)]
+    looks = [(0, 0, 0), (1.2, 0, 0), (0, 0, 0), (0, 8, 0), (6, 0, 0)]  # 3 looks away, 4 past the points
+    c2w = np.stack([look_at(e, t) for e, t in zip(eyes, looks)])
+    cams = Cameras.create(c2w, 40.0, 40.0, 32.0, 32.0, 64, 64)
+    pts = target + np.random.default_rng(0).normal(0.0, 0.05, (50, 3))
+    best = anchor_views(pts, cams, 8)
+    assert sorted(best[:2]) == [0, 2] and best[2:] == [1]  # 0 and 2 frame the points in their centre, 1 off it
+    assert anchor_views(pts, cams, 2) == best[:2]
+    assert anchor_views(np.zeros((0, 3)), cams, 8) == []

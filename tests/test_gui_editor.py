@@ -39,6 +39,8 @@ class AnalyticEngine:
         self.text_calls: list = []
         self.mask_calls: list = []
         self.repaint_calls: list[dict] = []
+        self.refine_calls: list = []
+        self.refine_to: float | None = None  # what refine_threshold answers (None: the patch's own threshold)
 
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
@@ -108,6 +110,10 @@ class AnalyticEngine:
         self.query = mean if mode == "new" or self.query is None else self.query + (mean if mode == "add" else -mean)
         sim = self._sim(feat)
         return PatchSelected(sim, None if mode == "sub" else patch_auto_threshold(sim, patch))
+
+    def refine_threshold(self, own):
+        self.refine_calls.append(own)
+        return own if self.refine_to is None else self.refine_to
 
     def select_text(self, cameras, text, mode="new", clip_path=None):
         self.text_calls.append((text, mode, clip_path))
@@ -270,8 +276,13 @@ def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, 
     ox, oy = editor.image_origin
     w, h = editor.view_size
     cx, cy = ox + w / 2, oy + h / 2
+    editor.engine.refine_to = 0.37
     drag(editor, (cx - 5, cy - 5), (cx + 5, cy + 5))
     shot = run_until(editor, lambda: editor.state.has_selection)
+    # then the training views vote on the patch's threshold, and the untouched slider follows
+    run_until(editor, lambda: abs(editor.state.threshold - 0.37) < 1e-6)  # the slider holds a float32
+    assert len(editor.engine.refine_calls) == 1 and editor.state.auto_threshold == 0.37
+    editor.engine.refine_to = None
     shot = frames(editor, 1)
     assert editor.state.view_mode == "mask"
     cv2.imwrite(str(artifacts_dir / "gui_03_mask.png"), shot[..., ::-1])
@@ -295,6 +306,21 @@ def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, 
     assert editor.engine.mask_calls == [(0.5, "full"), (0.5, "basic")]
     editor.state.use_geometry = True
     editor.state.tool = "navigate"
+
+
+def test_a_refined_threshold_leaves_a_moved_slider_alone():
+    from types import SimpleNamespace
+
+    from repaint_nerf.app.panels.selection import take_refined_threshold
+
+    moved = SimpleNamespace(threshold=0.8, auto_threshold=0.5)
+    take_refined_threshold(moved, 0.3)
+    assert (moved.threshold, moved.auto_threshold) == (0.8, 0.3)
+    untouched = SimpleNamespace(threshold=0.5, auto_threshold=0.5)
+    take_refined_threshold(untouched, 0.3)
+    assert (untouched.threshold, untouched.auto_threshold) == (0.3, 0.3)
+    take_refined_threshold(untouched, None)  # nothing selected any more
+    assert untouched.threshold == 0.3
 
 
 def _draw_mode(editor, mode):

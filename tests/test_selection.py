@@ -417,21 +417,27 @@ def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_p
     free = _free_camera()
     ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
     cy, cx = np.median(ys) / 48, np.median(xs) / 48
-    eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05))
+    own = eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05)).auto_threshold
     pts = eng.selection.anchor_points()
     assert eng.selection.cleanup and len(pts)
     assert np.abs(np.linalg.norm(pts - np.array(centers[0]), axis=1) - 0.22).max() < 0.05
-    assert eng.masks_for_all_views(0.5) == 6
     cams = eng.scene.field_cameras("train").to("cpu")
     gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(6)]
     look_alike = [_ball_gt(cams, i, centers[1], 0.22).numpy() & ~g for i, g in enumerate(gts)]
     assert sum(int(g.sum()) for g in look_alike) > 20  # the training views do see the look-alike
-    assert sum(int((m & a).sum()) for m, a in zip(eng.masks, look_alike)) == 0
-    assert sum(int((m & g).sum()) for m, g in zip(eng.masks, gts)) > 0.85 * sum(int(g.sum()) for g in gts)
+    # the training views that see the patch's points vote on its threshold (the editor asks a frame later)
+    refined = eng.refine_threshold(own)
+    assert 0.0 < refined < 1.0 and eng.selection.auto_threshold == refined
+    for threshold in (0.5, refined):
+        assert eng.masks_for_all_views(threshold) == 6
+        assert sum(int((m & a).sum()) for m, a in zip(eng.masks, look_alike)) == 0
+        assert sum(int((m & g).sum()) for m, g in zip(eng.masks, gts)) > 0.85 * sum(int(g.sum()) for g in gts)
     assert len(Selection.load(eng.workspace).anchors) == len(pts)
     with pytest.raises(UserError, match="unknown selection geometry"):
         eng.masks_for_all_views(0.5, "wobbly")
     assert eng.masks_for_all_views(0.5, "basic") == 6 and Selection.load(eng.workspace).geometry == "basic"
+    eng.clear_selection()
+    assert eng.refine_threshold(own) is None  # nothing selected: nothing to refine
 
 
 # -- end to end on a tiny trained scene -----------------------------------------------------------

@@ -77,6 +77,16 @@ def take_auto_threshold(state, auto: float | None) -> None:
     state.auto_threshold = auto
 
 
+def take_refined_threshold(state, auto: float | None) -> None:
+    """The patch's automatic threshold once the training views voted on it (Engine.refine_threshold, a moment
+    after its mask): the slider follows unless the user moved it meanwhile."""
+    if auto is None or state.auto_threshold is None:
+        return
+    if abs(state.threshold - state.auto_threshold) < 1e-6:
+        state.threshold = auto
+    state.auto_threshold = auto
+
+
 def _draw_text_query(app) -> None:
     """A folded "Select by text" section: a prompt and the engine's select_text on the current view (it needs a
     workspace trained with a CLIP-aligned teacher and that teacher's CLIP model)."""

@@ -197,6 +197,7 @@ class Evaluator:
         view: its surface points seed the others, Engine.select), masks of the other test views, made with the
         training views as `select` makes them, at the patch's automatic threshold, once per geometry parts of
         `parts_list`. Returns (masks of the other test views per parts, the threshold)."""
+        from repaint_nerf.core.select.geometry import anchor_views
         from repaint_nerf.core.select.masks import selection_seeds, shaped_masks
         from repaint_nerf.core.select.selection import Selection
 
@@ -205,6 +206,10 @@ class Evaluator:
         sel.add_patch(m.feature, rect)
         auto = sel.anchor_patch(sel.similarity(m.feature).float().numpy(), rect, m.depth.numpy(), m.opacity.numpy(),
                                 self.test_cams.to("cpu")[view], m.edge_depth().numpy())
+        voters = anchor_views(sel.anchor_points(), self.train_cams)  # as Engine.refine_threshold, a frame later
+        if voters:
+            auto = sel.refine_auto_threshold(auto, [self.train_maps(i) for i in voters],
+                                             self.train_cams.to("cpu")[torch.tensor(voters, dtype=torch.long)])
         others = [i for i in range(len(self.test)) if i != view]
         maps, cams, images = self._with_training_views(others)
         sims = [sel.similarity(v.feature) for v in maps]

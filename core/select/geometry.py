@@ -386,6 +386,7 @@ def seen_pixels(uv: np.ndarray, z: np.ndarray, depth: np.ndarray, tol: float = S
 
 
 MAX_ANCHORS = 512  # surface points kept from a free-view patch (a saved selection holds them)
+VOTE_VIEWS = 8  # training views rendered to vote on a free-view patch's threshold (Selection.refine_auto_threshold)
 
 
 def patch_anchors(patch_px: np.ndarray, similarity: np.ndarray, depth: np.ndarray, opacity: np.ndarray, cameras,
@@ -402,6 +403,31 @@ def patch_anchors(patch_px: np.ndarray, similarity: np.ndarray, depth: np.ndarra
     if len(pts) > MAX_ANCHORS:
         pts = pts[np.random.default_rng(rng_seed).choice(len(pts), MAX_ANCHORS, replace=False)]
     return pts
+
+
+def anchor_views(points: np.ndarray, cameras, limit: int = VOTE_VIEWS) -> list[int]:
+    """Up to `limit` views of `cameras` (indices, best first) in which most of `points` (field space, (P, 3)) project
+    in front of the camera and inside the image, the points' centre nearest the image centre first. No depth is
+    needed: the views' maps are rendered after they are chosen, and where another surface hides the points
+    they seed nothing (`anchor_seeds`)."""
+    import torch
+
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    n = len(cameras)
+    if not len(pts) or not n or limit < 1:
+        return []
+    cams = cameras.to("cpu")
+    uv, z = cams.project_views(torch.from_numpy(pts), torch.arange(n))
+    uv, z = uv.double().numpy(), z.double().numpy()
+    w, h = cams.width.double().numpy()[:, None], cams.height.double().numpy()[:, None]
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+    share = inside.mean(1)
+    count = np.maximum(inside.sum(1), 1)
+    cu = np.where(inside, uv[..., 0] / w, 0.0).sum(1) / count  # the points' centre in image fractions
+    cv = np.where(inside, uv[..., 1] / h, 0.0).sum(1) / count
+    off = np.hypot(cu - 0.5, cv - 0.5)
+    order = sorted((i for i in range(n) if share[i] >= 0.5), key=lambda i: (-round(share[i], 2), off[i], i))
+    return order[:limit]
 
 
 def anchor_seeds(points: np.ndarray, depths: list[np.ndarray], cameras) -> list[tuple[int, np.ndarray]]:

@@ -75,6 +75,21 @@ class Selection:
                                        auto))
         return auto
 
+    def refine_auto_threshold(self, own: float, maps: list, cameras) -> float:
+        """The automatic threshold of a free-view patch (`own`, what `anchor_patch` returned) refined by training
+        views that see its anchors (`maps`: their ViewMaps; `cameras`: those views at the maps' size, e.g. the
+        ones `geometry.anchor_views` chose): each grows its region from the anchors it sees, and the leaking ones
+        vote (`autothreshold.views_threshold`). Kept as `auto_threshold`; returned."""
+        from repaint_nerf.core.select.autothreshold import patch_auto_threshold_px, uses_edges, views_threshold
+        from repaint_nerf.core.select.geometry import anchor_seeds
+
+        others = [patch_auto_threshold_px(self.similarity(maps[i].feature).float().numpy(), seeds,
+                                          maps[i].edge_depth().numpy(), maps[i].opacity.numpy(),
+                                          edges=uses_edges(self))
+                  for i, seeds in anchor_seeds(self.anchor_points(), [m.depth.numpy() for m in maps], cameras)]
+        self.auto_threshold = views_threshold(own, others)
+        return self.auto_threshold
+
     def anchor_points(self) -> np.ndarray:
         """The anchors as a float32 (N, 3) array."""
         return np.asarray(self.anchors, np.float32).reshape(-1, 3)
