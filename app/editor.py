@@ -76,6 +76,7 @@ class EditorApp:
         self.last_frame: Frame | None = None
         self.drag_start: tuple[float, float] | None = None
         self._refine_after: float | None = None  # a patch's threshold the training views vote on next frame
+        self._vote_paused: float | None = None  # ... or once the view rests again, after the user interrupted it
         self.drag_rect: tuple[float, float, float, float] | None = None  # normalised x0, y0, x1, y1
         self.events: list = []  # (time, what) log for tests and the viewport benchmark
         self.guide = Guide(UserSettings())  # the first-run hint line (app.menu_bar draws it)
@@ -232,6 +233,7 @@ class EditorApp:
                 s.selection_busy = False
                 s.has_selection = True
                 self.guide.done("select")
+                self._vote_paused = None  # a vote for an older selection is moot
                 if msg.name == "select":  # a PatchSelected: the map and its automatic threshold
                     self.viewport.upload_similarity(msg.value.similarity)
                     selection_panel.take_auto_threshold(s, msg.value.auto_threshold)
@@ -242,7 +244,10 @@ class EditorApp:
                 if s.view_mode not in ("similarity", "mask"):
                     s.view_mode = "mask"
             elif msg.name == "refine_threshold":
-                selection_panel.take_refined_threshold(s, msg.value)
+                if msg.cancelled:  # the user moved on: vote again once the view rests
+                    self._vote_paused = msg.tag
+                else:
+                    selection_panel.take_refined_threshold(s, msg.value)
             elif msg.name == "masks_for_all_views":
                 s.masks_done = int(msg.value)
             elif msg.name == "repaint":
@@ -415,13 +420,14 @@ class EditorApp:
         """
         idle = not (self._active or self.window.has_pending_input())
         wait = self._frame_started + 1.0 / (self.idle_fps if idle else self.max_fps) - time.perf_counter()
-        if wait > 0:
-            # An idle UI sleeps until input or the worker; an active one keeps its pace through input, but a
-            # result from the worker (a frame, a reply) ends the wait: it goes on screen without a pacing delay.
+        if wait > 0 and not self.window.clicked():
+            # An idle UI sleeps until input or the worker; an active one keeps its pace through mouse motion,
+            # but a click (a patch's release) or a result from the worker (a frame, a reply) ends the wait: it
+            # is answered, or goes on screen, without a pacing delay.
             deadline = time.perf_counter() + wait
             while (left := deadline - time.perf_counter()) > 0:
                 self.window.wait_events(left)
-                if idle or self.worker.result_ready():
+                if idle or self.worker.result_ready() or self.window.clicked():
                     break
         self._frame_started = time.perf_counter()
         self.window.begin_frame()
@@ -445,11 +451,27 @@ class EditorApp:
         if present:
             self._last_present = self._frame_started
             self.frames_presented += 1
-            if self._refine_after is not None:  # once the patch's mask is on screen: the vote holds the worker
-                # (~0.5 s on 2 cores) and its Python work would slow the frame that shows the mask
-                self.call(self.engine.refine_threshold, self._refine_after)
-                self._refine_after = None
+            self._queue_vote()
         return shot
+
+    def _queue_vote(self) -> None:
+        """Ask the training views' vote on the newest patch's threshold (Engine.refine_threshold) once its mask
+        is on screen, not within the frame that shows it; it takes about a second of the worker, so it gives way
+        to the user's next camera move, patch or command, and runs again when the view rests."""
+        if self._refine_after is not None:
+            own = self._refine_after
+        elif self._vote_paused is not None and self._view_rests():
+            own = self._vote_paused
+        else:
+            return
+        self._refine_after = self._vote_paused = None
+        if self.state.has_selection:
+            self.call(self.engine.refine_threshold, own, tag=own, cancellable=True)
+
+    def _view_rests(self) -> bool:
+        """The requested view is on screen at full resolution and no gesture is under way."""
+        return (self.last_frame is not None and self.last_frame.final and self.shown_key == self.requested_key
+                and self.drag_start is None and not imgui.is_any_mouse_down() and not self.state.selection_busy)
 
     def _worth_drawing(self, msgs: list) -> bool:
         """False for a frame that would show the same old picture while the worker renders a moved camera's

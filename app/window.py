@@ -30,6 +30,7 @@ def mouse_event(x: float, y: float, button: int | None = None, down: bool | None
         io.add_mouse_pos_event(x, y)
         if button is not None:
             io.add_mouse_button_event(button, bool(down))
+    fn.button = button is not None  # a click ends the UI's pacing wait, as a real one does (Window.clicked)
     return fn
 
 
@@ -85,6 +86,10 @@ class Window:
         io = imgui.get_io()
         io.config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value
         io.set_ini_filename("")  # no imgui.ini next to the user's data
+        self._clicked = False
+        # installed before imgui's backend, which chains it (one libglfw: imgui_bundle's)
+        self._on_button = lambda handle, button, action, mods: setattr(self, "_clicked", True)
+        glfw.set_mouse_button_callback(self.handle, self._on_button)
         imgui.backends.glfw_init_for_opengl(_window_address(self.handle), True)
         imgui.backends.opengl3_init("#version 330")
         self._injectors: list[Callable[[imgui.IO], None]] = []
@@ -93,6 +98,12 @@ class Window:
     def inject(self, fn: Callable[["imgui.IO"], None]) -> None:
         """Queue a function that adds imgui input events for the next frame (tests, scripted benchmarks)."""
         self._injectors.append(fn)
+        self._clicked = self._clicked or bool(getattr(fn, "button", False))
+
+    def clicked(self) -> bool:
+        """A mouse button went down or up since this frame began: a patch's release or a press is answered
+        at once, while mouse motion keeps the frame pace."""
+        return self._clicked
 
     def should_close(self) -> bool:
         return self._closed or glfw.window_should_close(self.handle)
@@ -116,6 +127,7 @@ class Window:
         return bool(self._injectors)
 
     def begin_frame(self) -> None:
+        self._clicked = False
         glfw.poll_events()
         imgui.backends.opengl3_new_frame()
         imgui.backends.glfw_new_frame()

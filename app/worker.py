@@ -56,6 +56,7 @@ class Reply:
     error: str | None = None
     tag: Any = None
     repairable: str | None = None  # a damaged workspace behind the error: the editor offers to repair it
+    cancelled: bool = False  # a `cancellable` call that gave way to the user's next action (its value is partial)
 
 
 @dataclass
@@ -139,15 +140,19 @@ class Worker:
             self._served = (-1, 0.0)
         self._wake.set()
 
-    def call(self, fn: Callable[..., Any], *args: Any, tag: Any = None, **kwargs: Any) -> None:
+    def call(self, fn: Callable[..., Any], *args: Any, tag: Any = None, cancellable: bool = False,
+             **kwargs: Any) -> None:
         """Run `fn(*args, **kwargs)` (a bound method of the engine) on the worker; a `Reply` named after the
-        function comes back through `poll`."""
-        self.commands.put((fn, args, kwargs, tag))
+        function comes back through `poll`. A `cancellable` call is work the user did not wait for (the views'
+        vote on a threshold): `fn` also gets `cancel=`, which turns true once another command, a new view or a
+        gesture arrives, and its Reply says `cancelled` when that stopped it."""
+        self.commands.put((fn, args, kwargs, tag, cancellable))
         self._wake.set()
 
     def hold(self, on: bool) -> None:
-        """While held, the worker starts no training step, so the command the gesture ends with (a patch's
-        selection) runs at once instead of after a step."""
+        """While held, the worker starts no training step and no sharper render of the view on screen (a
+        running one stops), so the command the gesture ends with (a patch's selection) runs at once instead of
+        after a step or a render."""
         self.held = bool(on)
         self._wake.set()
 
@@ -178,20 +183,37 @@ class Worker:
                 self.notify()
 
     def _stale(self, serial: int) -> Callable[[], bool]:
-        # A queued command (a patch to select, an undo) also interrupts a render: it is served first.
+        # A queued command (a patch to select, an undo) or a gesture also interrupts a render: it is served first.
         return lambda: (self._stop.is_set() or self._latest is None or self._latest.serial != serial
-                        or not self.commands.empty())
+                        or not self.commands.empty() or self.held)
+
+    def _preempted(self) -> tuple[Callable[[], bool], list]:
+        """A cancel callback for a cancellable command, and the list it marks when it fired: the user's next
+        command, a view requested after the command started, a gesture or closing all come first."""
+        with self._lock:
+            serial = self._latest.serial if self._latest is not None else 0
+        fired: list = []
+
+        def cancel() -> bool:
+            if (self._stop.is_set() or self.held or not self.commands.empty()
+                    or (self._latest is not None and self._latest.serial != serial)):
+                fired.append(True)
+            return bool(fired)
+        return cancel, fired
 
     def _run_commands(self) -> None:
         while True:
             try:
-                fn, args, kwargs, tag = self.commands.get_nowait()
+                fn, args, kwargs, tag, cancellable = self.commands.get_nowait()
             except queue.Empty:
                 return
             name = getattr(fn, "__name__", repr(fn))
+            fired: list = []
             try:
+                if cancellable:
+                    kwargs["cancel"], fired = self._preempted()
                 value = fn(*args, **kwargs)
-                self._publish(Reply(name, value, None, tag))
+                self._publish(Reply(name, value, None, tag, cancelled=bool(fired)))
             except UserError as exc:
                 damaged = isinstance(exc, WorkspaceDamaged) and exc.workspace is not None
                 self._publish(Reply(name, None, str(exc), tag, str(exc.workspace) if damaged else None))
@@ -205,6 +227,8 @@ class Worker:
         resting = (time.perf_counter() - req.time) >= self.rest_s
         if served_serial != req.serial:
             return self.controller.for_view(_pixels(req.cameras))
+        if self.held:
+            return None  # mid-gesture: the view on screen will do until the gesture's command has run
         if self._preview_due and resting:
             self._preview_due = False  # the model trained: re-render the resting view sharp, not coarse-first
             return 1.0
@@ -219,19 +243,21 @@ class Worker:
             if scale is None:
                 return False
             first = self._served[0] != req.serial
+            before = self._served
             self._served = (req.serial, max(scale, 1.0))  # a failing render is not retried until the view changes
         # The first frame of a new view is short by design (the controller's scale) and is never cancelled by a
         # newer view: during a drag, requests come every UI frame, faster than renders, and cancelling each for
         # the next left the viewport frozen until the mouse stopped. Refinements of a resting view are long: a
-        # move or a command cancels them.
+        # move, a command or a gesture cancels them.
         cancel = self._stop.is_set if first else self._stale(req.serial)
         t0 = time.perf_counter()
         data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
         self._last_render_s = ms / 1000.0
-        if data is None:  # cancelled by a newer request
+        if data is None:  # cancelled by a newer request, a command or a gesture
             self.cancelled += 1
-            self._served = (-1, 0.0)
+            with self._lock:  # the same view refines on from what is on screen, not from coarse again
+                self._served = before
             return True
         if data.get("feature") is not None and "feature" in req.outputs:
             data["feature_pca"] = self.projector(data["feature"])

@@ -295,11 +295,12 @@ class Engine:
                                                view.expected_depth)
         return PatchSelected(similarity, auto)
 
-    def refine_threshold(self, own: float) -> float | None:
+    def refine_threshold(self, own: float, cancel: Callable[[], bool] | None = None) -> float | None:
         """The newest free-view patch's automatic threshold (`own`, what `select` returned) once the training
         views that see its surface points vote (Selection.refine_auto_threshold): up to `geometry.VOTE_VIEWS`
         of them, rendered at most `VOTE_SIDE` px on a side. The editor asks for it after the patch's mask is on
-        screen (a few hundred ms on a CPU). None when nothing with anchors is selected."""
+        screen (about 1 s on one core), as work the user can interrupt: None when `cancel()` turns true before
+        the vote, and when nothing with anchors is selected."""
         from repaint_nerf.core.select.geometry import anchor_views
         from repaint_nerf.core.select.masks import render_view_maps
 
@@ -318,10 +319,14 @@ class Engine:
         opts = RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
         was_training = self.field.training
         self.field.eval()
+        maps = []
         try:
             with torch.no_grad():
                 on_device = voters.to(self.device)
-                maps = [render_view_maps(self.field, self.grid, on_device, i, opts) for i in range(len(views))]
+                for i in range(len(views)):
+                    maps.append(render_view_maps(self.field, self.grid, on_device, i, opts, cancel=cancel))
+                    if maps[-1] is None:
+                        return None
         finally:
             self.field.train(was_training)
         return sel.refine_auto_threshold(own, maps, voters)

@@ -71,6 +71,35 @@ def test_worker_yields_training_to_views_commands_and_gestures(engine):
     assert worker._train() is True
 
 
+def test_a_cancellable_command_gives_way_to_the_users_next_action(engine):
+    from repaint_nerf.app.worker import Worker
+
+    worker = Worker(engine)  # not started: the test runs its command loop by hand
+    seen = []
+
+    def vote(own, cancel=None):
+        seen.append(cancel())
+        worker.request_render(engine.info()["cameras"][0], key=("moved",))  # the user orbits meanwhile
+        seen.append(cancel())
+        return own
+
+    worker.call(vote, 0.4, tag=0.4, cancellable=True)
+    worker._run_commands()
+    reply = worker.poll()[-1]
+    assert seen == [False, True] and reply.cancelled and reply.tag == 0.4
+    for interrupt in (lambda: worker.call(engine.info), lambda: worker.hold(True)):  # a command, a patch gesture
+        flags = []
+        worker.commands.put((lambda cancel=None: flags.append(cancel()) or interrupt() or flags.append(cancel()),
+                             (), {}, None, True))
+        worker._run_commands()
+        assert flags == [False, True]
+        worker.hold(False)
+    worker.poll()
+    worker.call(engine.info)  # a plain command gets no cancel and is never marked
+    worker._run_commands()
+    assert not worker.poll()[-1].cancelled
+
+
 def test_save_and_export(engine, tmp_path):
     root = engine.save()
     assert engine.workspace.original_version is not None and root

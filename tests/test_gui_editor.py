@@ -41,6 +41,7 @@ class AnalyticEngine:
         self.repaint_calls: list[dict] = []
         self.refine_calls: list = []
         self.refine_to: float | None = None  # what refine_threshold answers (None: the patch's own threshold)
+        self.refine_s = 0.0  # how long the vote takes, in 10 ms slices that give way to `cancel`
 
     def capabilities(self):
         return {"load": None, "train": None, "select": None, "repaint": None}
@@ -111,8 +112,13 @@ class AnalyticEngine:
         sim = self._sim(feat)
         return PatchSelected(sim, None if mode == "sub" else patch_auto_threshold(sim, patch))
 
-    def refine_threshold(self, own):
+    def refine_threshold(self, own, cancel=None):
         self.refine_calls.append(own)
+        end = time.perf_counter() + self.refine_s
+        while time.perf_counter() < end:
+            if cancel is not None and cancel():
+                return None
+            time.sleep(0.01)
         return own if self.refine_to is None else self.refine_to
 
     def select_text(self, cameras, text, mode="new", clip_path=None):
@@ -282,7 +288,19 @@ def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, 
     # then the training views vote on the patch's threshold, and the untouched slider follows
     run_until(editor, lambda: abs(editor.state.threshold - 0.37) < 1e-6)  # the slider holds a float32
     assert len(editor.engine.refine_calls) == 1 and editor.state.auto_threshold == 0.37
-    editor.engine.refine_to = None
+    # A slow vote gives way to a camera move, and votes again once the view rests.
+    editor.engine.refine_to, editor.engine.refine_s = 0.41, 1.0
+    drag(editor, (cx - 8, cy - 8), (cx + 8, cy + 8))
+    run_until(editor, lambda: len(editor.engine.refine_calls) == 2)
+    moved = time.perf_counter()
+    editor.camera.orbit(5, 0)
+    run_until(editor, lambda: any(w == "reply:refine_threshold" and t > moved and m.cancelled
+                                  for t, w, m in editor.events))
+    assert abs(editor.state.threshold - 0.41) > 1e-6  # the interrupted vote changed nothing
+    run_until(editor, lambda: abs(editor.state.threshold - 0.41) < 1e-6)
+    assert len(editor.engine.refine_calls) == 3
+    editor.camera.orbit(-5, 0)
+    editor.engine.refine_to, editor.engine.refine_s = None, 0.0
     shot = frames(editor, 1)
     assert editor.state.view_mode == "mask"
     cv2.imwrite(str(artifacts_dir / "gui_03_mask.png"), shot[..., ::-1])

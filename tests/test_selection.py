@@ -426,6 +426,8 @@ def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_p
     look_alike = [_ball_gt(cams, i, centers[1], 0.22).numpy() & ~g for i, g in enumerate(gts)]
     assert sum(int(g.sum()) for g in look_alike) > 20  # the training views do see the look-alike
     # the training views that see the patch's points vote on its threshold (the editor asks a frame later)
+    assert eng.refine_threshold(own, cancel=lambda: True) is None  # the user moved on: nothing voted
+    assert eng.selection.auto_threshold == own
     refined = eng.refine_threshold(own)
     assert 0.0 < refined < 1.0 and eng.selection.auto_threshold == refined
     for threshold in (0.5, refined):

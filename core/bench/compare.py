@@ -36,6 +36,7 @@ FIGURES: dict[str, list[Figure]] = {
         Figure("move to first frame p50", "move_to_first_frame_ms_p50", True, "ms"),
         Figure("move to first frame p99", "move_to_first_frame_ms_p99", True, "ms"),
         Figure("patch to mask", "patch_to_mask_ms", True, "ms"),
+        Figure("patch to mask while the views vote", "patch_during_vote_ms", True, "ms"),
         Figure("tool to first feature frame", "tool_to_first_feature_frame_ms", True, "ms"),
         Figure("tool to sharp feature frame", "tool_to_feature_frame_ms", True, "ms"),
         Figure("frames per second while dragging", "drag_frames_per_s", False, "/s"),

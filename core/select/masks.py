@@ -124,8 +124,10 @@ class ViewCache:
         return self._maps[view]
 
 
-def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
-    """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer."""
+def render_view_maps(field, grid, cameras, view: int, opts=None, cancel: Callable[[], bool] | None = None
+                     ) -> ViewMaps | None:
+    """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer; None when
+    `cancel()` turns true meanwhile."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     n = len(cameras)
@@ -135,7 +137,9 @@ def render_view_maps(field, grid, cameras, view: int, opts=None) -> ViewMaps:
     base = opts or RenderOptions()
     opts = replace(base, outputs=("feature", "depth", "median_depth", "opacity"), background=None, perturb=False,
                    feature_first_surface=FIRST_SURFACE)
-    out = render_camera(field, grid, cameras, int(view), opts)
+    out = render_camera(field, grid, cameras, int(view), opts, cancel=cancel)
+    if out is None:
+        return None
     return ViewMaps(out["feature"].to("cpu", torch.float16), out["median_depth"].float().cpu(),
                     out["opacity"].float().cpu(), out["depth"].float().cpu())
 
