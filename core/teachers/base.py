@@ -8,6 +8,7 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import torch
 
 from repaint_nerf.core.errors import UserError
 
@@ -24,10 +25,11 @@ class FeatureTeacher(Protocol):
 
 
 def l2_normalize(features: np.ndarray, axis: int = -1, eps: float = 1e-8) -> np.ndarray:
-    """Unit-length vectors along `axis` (float32); a zero vector stays zero instead of becoming NaN."""
-    f = np.asarray(features, dtype=np.float32)
-    norm = np.sqrt(np.sum(f * f, axis=axis, keepdims=True))
-    return f / np.maximum(norm, eps)
+    """Unit-length vectors along `axis` (float32); a zero vector stays zero instead of becoming NaN. Through
+    torch: numpy's temporaries made this a third of a blended teacher's time on a 500-px photo."""
+    f = torch.from_numpy(np.ascontiguousarray(features, dtype=np.float32))
+    norm = torch.linalg.vector_norm(f, dim=axis, keepdim=True).clamp_min_(eps)
+    return (f / norm).numpy()
 
 
 def check_image(image: np.ndarray, what: str = "image") -> np.ndarray:

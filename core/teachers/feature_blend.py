@@ -30,5 +30,10 @@ class BlendFeatureTeacher:
     def __call__(self, image: np.ndarray) -> np.ndarray:
         """(H, W, 3) uint8 -> (H, W, sum of dims) float32, unit length per pixel."""
         rgb = check_image(image)
-        feats = [l2_normalize(t(rgb)) * np.float32(np.sqrt(w)) for t, w in self.parts]
-        return l2_normalize(np.concatenate(feats, axis=2))
+        feats = [t(rgb) for t, _ in self.parts]  # each unit per pixel (the protocol): no normalising again
+        out = np.empty(feats[0].shape[:2] + (sum(f.shape[2] for f in feats),), np.float32)
+        at = 0
+        for f, (_, w) in zip(feats, self.parts):
+            np.multiply(f, np.float32(np.sqrt(w)), out=out[..., at:at + f.shape[2]])
+            at += f.shape[2]
+        return l2_normalize(out)  # a part's zero vector leaves the rest short of unit length

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
-from scipy.sparse import csr_matrix
+import torch
 
 from repaint_nerf.core.teachers.base import check_image
 
@@ -133,15 +133,13 @@ def region_pool(desc: np.ndarray, rgb8: np.ndarray, size: int, ruler: float, wei
     slic = cv2.ximgproc.createSuperpixelSLIC(lab, algorithm=cv2.ximgproc.SLIC, region_size=int(size),
                                              ruler=float(ruler))
     slic.iterate(4)
-    labels = slic.getLabels().reshape(-1)
+    labels = torch.from_numpy(slic.getLabels().reshape(-1).astype(np.int64))
     n = int(labels.max()) + 1
-    flat = desc.reshape(-1, desc.shape[2])
-    counts = np.bincount(labels, minlength=n).astype(np.float32)
-    member = csr_matrix((np.ones(labels.size), (labels, np.arange(labels.size))), shape=(n, labels.size))
-    sums = member @ flat.astype(np.float64)
-    pooled = (sums / np.maximum(counts, 1.0)[:, None]).astype(np.float32)[labels]
-    a = np.float32(weight)
-    return (a * pooled + (1.0 - a) * flat).reshape(desc.shape)
+    flat = torch.from_numpy(np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, desc.shape[2]))
+    sums = torch.zeros(n, flat.shape[1]).index_add_(0, labels, flat)
+    counts = torch.bincount(labels, minlength=n).clamp_min_(1).float()
+    pooled = sums / counts[:, None]
+    return torch.lerp(flat, pooled[labels], float(weight)).reshape(desc.shape).numpy()
 
 
 def _blur(x: np.ndarray, sigma: float) -> np.ndarray:
