@@ -180,6 +180,8 @@ def test_a_capture_scores_every_pixel_only_at_the_report_times(tmp_path):
     full = measure(tmp_path, 2.0, evals=2, report_at=(1.0,), minute_curve=False, profile_steps=1,
                    bounded_curve=False)
     assert all("bounded" not in p for p in full["curve"][1:])
+    forced = measure(tmp_path, 1.0, evals=1, report_at=(0.5,), minute_curve=False, profile_steps=1, kind="unbounded")
+    assert (res["scene"]["kind"], forced["scene"]["kind"]) == ("forward", "unbounded")  # as train --kind
 
 
 # ------------------------------------------------------------------ the nerfacto harness (no nerfstudio needed)

@@ -18,6 +18,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=100, help="generated training views")
     p.add_argument("--test-views", type=int, default=20, help="generated test views")
     p.add_argument("--downscale", type=float, default=1.0)
+    p.add_argument("--kind", choices=("bounded", "forward", "unbounded"), default=None,
+                   help="scene kind (default: the dataset's, else detected from the camera layout), as train --kind")
     p.add_argument("--seconds", type=float, default=60.0, help="training time budget (evaluation not counted)")
     p.add_argument("--evals", type=int, default=12, help="evenly spaced test evaluations along the run")
     p.add_argument("--report-at", default=",".join(f"{t:g}" for t in REPORT_AT),
@@ -102,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(scene_path, args.seconds, args.evals, args.eval_views, args.rays, args.lr, args.seed,
                          args.profile_steps, args.downscale, args.device, progress, args.holdout_every, report_at,
-                         not args.no_minute_curve)
+                         not args.no_minute_curve, kind=args.kind)
         result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
         out = Path(args.json)
         atomic.write_json(out, result)

@@ -199,19 +199,21 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
             rays: int | None = None, lr: float | None = None, seed: int = 0, profile_steps: int = 8,
             downscale: float = 1.0, device: str | None = None,
             progress: Callable[[dict], None] | None = None, holdout_every: int | None = None,
-            report_at=REPORT_AT, minute_curve: bool = True, bounded_curve: bool | None = None) -> dict:
+            report_at=REPORT_AT, minute_curve: bool = True, bounded_curve: bool | None = None,
+            kind: str | None = None) -> dict:
     """Train stage 1 from scratch on a scene for `seconds` with test evaluations along the way (`evals` evenly
     spaced, the first-minute curve, and PSNR with SSIM at each `report_at` time); the result dict holds the curve,
     the figures at the report times, final PSNR/SSIM, render figures, the breakdown and the nerfacto reference
     (with its ratios, labelled as figures measured elsewhere). A capture without its own test split holds out
-    every `holdout_every`-th view (default 8). `progress(point)` gets each curve point."""
+    every `holdout_every`-th view (default 8). `progress(point)` gets each curve point. `kind` overrides the
+    detected scene kind."""
     import torch
 
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
-    scene = load_scene(scene_path, downscale, holdout_every=holdout_every)
+    scene = load_scene(scene_path, downscale, kind=kind, holdout_every=holdout_every)
     if bounded_curve is None:  # a capture (no rendered test split) evaluates every pixel only at the report times
         bounded_curve = scene.extra.get("holdout", {}).get("rule") != "the dataset's own test split"
     cfg = TrainConfig(seed=seed)
