@@ -123,13 +123,14 @@ class Evaluator:
     training views: the patch seeds its own training view, and the training views' masks (what `select` writes
     for the repaint) come out beside the test views' (held out: scored against ground truth the field never saw)."""
 
-    def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None):
+    def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None, render_opts=None):
         from repaint_nerf.core.select.masks import ViewCache, render_view_maps
 
-        self.test = [render_view_maps(field, grid, test_cams, i) for i in range(len(test_cams))]
+        self.test = [render_view_maps(field, grid, test_cams, i, render_opts) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
         self.train_images, self.test_images = train_images, test_images  # the photos, for the image part
-        self.train_cache = ViewCache(field, grid, train_cams)  # the training views' maps, as `select` caches them
+        # the training views' maps, as `select` caches them (at the sample budget the field was trained with)
+        self.train_cache = ViewCache(field, grid, train_cams, render_opts=render_opts)
 
     def train_maps(self, view: int):
         return self.train_cache.get(view)
@@ -357,6 +358,7 @@ def bench_scene(root: Path, ws_dir: Path, cfg: MaskBenchConfig, device, log=None
 def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict:
     import dataclasses
 
+    from repaint_nerf.core.render.renderer import RenderOptions
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
 
     tcfg = TrainConfig(seed=cfg.seed)
@@ -381,7 +383,8 @@ def _train_run(scene, store, depth, cfg, device, evals, patch, gts, log) -> dict
         trainer.train(steps=s)
         trainer.field.eval()
         ev = Evaluator(trainer.field, trainer.grid, train_cams, test_cams, scene.train.images,
-                       scene.split("test" if "test" in scene.splits else "train").images)
+                       scene.split("test" if "test" in scene.splits else "train").images,
+                       RenderOptions(max_samples=trainer.march_samples))
         auto = ev.auto_threshold(patch)
         m3, _ = ev.masks(patch, (auto,), default_parts(ev))
         m2, _ = ev.masks(patch, (auto,), variants["none"])
