@@ -126,13 +126,15 @@ class Engine:
         data (the dataset folder itself is never written to) and resumes its checkpoint when there is one.
         `feature_model` (a built-in name such as 'efficientnet-lite0', or a model path / id) is the feature
         teacher as `train --feature-model` takes it (a change of the saved one adds a note to `notes`); None keeps
-        the workspace's saved choice, else the environment's, else the built-in teacher.
+        the workspace's saved choice, else the environment's, else stage1_targets.default_feature_model().
         """
         teachers = Teachers(features=self.use_features, depth=self.use_depth, feature_model=feature_model)
         rec = start_reconstruction(demo_scene_path() if path is None else path, workspace,
                                    train_cfg=self.train_cfg or editor_train_config(self.device),
                                    teachers=teachers, device=self.device)
         ws = rec.workspace
+        if self.trainer is not None:
+            self.trainer.close()  # its teacher thread, if any, stops (a failed load above keeps it)
         self.scene, self.workspace, self.trainer, self.notes = rec.scene, ws, rec.trainer, rec.notes
         self.field, self.grid = rec.trainer.field, rec.trainer.grid
         self.selection, self.masks, self.edit, self._feature_cache = None, None, None, None

@@ -223,7 +223,7 @@ def start_reconstruction(data: str | Path | None, workspace: str | Path | None =
     `at_current_version` the field is the workspace's current version (an edit, or a version without a
     checkpoint), as the editor shows it. Teachers follow `teachers`, else the workspace's saved choices.
     """
-    from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_targets
+    from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_stream
 
     device = device if isinstance(device, torch.device) else get_device(device)
     ws, scene_path, chosen = _workspace_for(Path(data) if data is not None else None, workspace, load_as, resume)
@@ -242,7 +242,7 @@ def start_reconstruction(data: str | Path | None, workspace: str | Path | None =
     notes: list[str] = []
     features = None
     if teachers.features and (field_cfg is None or field_cfg.feature_dim > 0):
-        features = feature_targets(scene, ws, (field_cfg.feature_dim if field_cfg else 0) or FEATURE_DIMS,
+        features = feature_stream(scene, ws, (field_cfg.feature_dim if field_cfg else 0) or FEATURE_DIMS,
                                    model=teachers.feature_model, input_size=teachers.feature_size,
                                    norm=teachers.feature_norm, notes=notes)
     depth = depth_priors(scene, ws, notes, model=teachers.depth_model) if teachers.depth else None

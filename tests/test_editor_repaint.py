@@ -47,7 +47,9 @@ def edit(scene_factory, tmp_path_factory):
     """(trainer, renders before, renders after, per-view Eq. unmask before, selection IoU) of one editor edit."""
     root = scene_factory("demo", size=SIZE, views=VIEWS, test_views=2)
     eng = Engine("cpu")  # the editor's stage-1 settings (editor_train_config)
-    eng.load(root, workspace=tmp_path_factory.mktemp("ws"))
+    # the built-in teacher: this 32-px scene reaches EfficientNet-Lite0 (the default blend's network) upsampled 8x,
+    # where its stride-8 cells span 4 pixels, and the blend's patch took 0.63 of the block (0.7 is asked below)
+    eng.load(root, workspace=tmp_path_factory.mktemp("ws"), feature_model="default")
     eng.train_for(600.0, stop=lambda: eng.trainer.step_count >= STAGE1_STEPS)  # exactly STAGE1_STEPS
     cams = eng.info()["cameras"]
     view = CameraControl.framing(cams).cameras(2 * SIZE, 2 * SIZE)  # the viewport's first view, not a training one
@@ -99,3 +101,11 @@ def test_the_status_never_shows_nan(edit):
         line = status_line({**h, "phase": "repaint"})
         assert "nan" not in line.lower() and "unmasked PSNR" in line
     assert status_line({"phase": "repaint", "step": 3, "loss": float("nan")}) == "repaint step 3"
+
+
+
+def test_the_status_says_how_far_the_teacher_has_got():
+    """While the feature teacher runs beside stage 1, the status counts the views whose features have arrived."""
+    assert status_line({"phase": "reconstruct", "step": 5, "features_ready": [4, 43]}) == \
+        "reconstruct step 5  teacher features 4/43 views"
+    assert status_line({"phase": "reconstruct", "step": 5, "features_ready": [43, 43]}) == "reconstruct step 5"

@@ -144,3 +144,36 @@ def test_reopened_workspace_brings_its_training_history(trained_ws, tmp_path):
     h = info["history"]
     assert h.steps == [float(s) for s in range(1, 13)] and len(h.loss) == len(h.psnr) == 12
     assert h.loss == rec.trainer.history.loss[:12] and all(np.isfinite(h.psnr))
+
+
+def test_training_starts_before_the_teacher_has_finished(scene_factory, tmp_path, monkeypatch):
+    """The feature teacher runs beside stage 1 (core.teachers.feature_stream): a teacher that has not made one
+    code yet does not hold up the first steps, its choice is saved at once, and its codes join as they come.
+    (The built-in teacher is gated; the default blend runs it too.)"""
+    import threading
+
+    from repaint_nerf.core.session import Teachers, start_reconstruction
+    from repaint_nerf.core.teachers.feature_default import DefaultFeatureTeacher
+    from repaint_nerf.core.teachers.stage1_targets import default_feature_model
+    from repaint_nerf.core.train.stage1 import TrainConfig
+
+    gate, real, calls = threading.Event(), DefaultFeatureTeacher.__call__, []
+
+    def gated(self, image):  # the first pass (the stream's look at the teacher's channels) goes through
+        calls.append(1)
+        if len(calls) > 1:
+            gate.wait(60)
+        return real(self, image)
+
+    monkeypatch.setattr(DefaultFeatureTeacher, "__call__", gated)
+    scene = scene_factory("demo", size=24, views=6, test_views=2)
+    cfg = TrainConfig(rays_per_batch=256, grid_resolution=16, max_samples=64, grid_warmup_steps=4)
+    rec = start_reconstruction(scene, tmp_path / "ws", train_cfg=cfg, teachers=Teachers(depth=False), device="cpu")
+    tr = rec.trainer
+    assert rec.workspace.settings["feature_model"] == default_feature_model().to_setting()
+    assert "feature" not in tr.step() and tr.feature_stream is not None and not bool(tr.feature_ready.any())
+    gate.set()
+    assert tr.feature_stream.wait(timeout=60) is not None
+    info = tr.step()
+    assert "feature" in info and tr.feature_stream is None
+    assert len(list((tmp_path / "ws").rglob("teachers/*/*/*.safetensors"))) == 6  # every view's codes, cached

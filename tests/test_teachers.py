@@ -233,3 +233,72 @@ def test_similar_preset_patch_query_keeps_the_object_and_ranks_it_first(tmp_path
     print(f"similar: recall {recall:.3f}, mean similarity per object {mean_sim}")
     assert recall > 0.9
     assert max(mean_sim, key=mean_sim.get) == obj
+
+
+def test_feature_stream_hands_over_the_stores_codes_fitted_images_first(tmp_path):
+    """Codes arrive one image at a time on a background thread (the PCA's fitted images first), equal to the
+    synchronous store's; a stopped stream ends without finishing, and a teacher's error reaches the poller."""
+    import threading
+
+    from repaint_nerf.core.teachers.feature_stream import FeatureStream
+
+    imgs = [toy_image(seed=s, shift=s)[0] for s in range(5)]
+    gate = threading.Semaphore(0)
+
+    class Gated(DefaultFeatureTeacher):  # one teacher pass per release of the gate
+        def __call__(self, image):
+            gate.acquire()
+            return super().__call__(image)
+
+    gate.release()  # the stream reads the teacher's channel count off one pass before it starts
+    stream = FeatureStream(imgs, Gated(), tmp_path / "a", dims=8)
+    assert len(stream) == 5 and stream.sizes == [(64, 64)] * 5 and stream.poll() == []
+    got = {}
+    for _ in range(5):
+        gate.release()
+    store = stream.wait(timeout=60)
+    for i, codes in stream.poll():
+        got[i] = codes
+    assert stream.complete and list(got)[0] == 0 and sorted(got) == list(range(5))
+    reference = build_feature_store(imgs, DefaultFeatureTeacher(), tmp_path / "b", dims=8)
+    for i in range(5):
+        assert torch.equal(got[i], store.codes[i]) and torch.equal(got[i], reference.codes[i])
+
+    gate.release()
+    stopped = FeatureStream(imgs, Gated(), tmp_path / "c", dims=8)
+    for _ in range(2):  # the fit uses every image of so few, so no code exists before the fifth pass
+        gate.release()
+    stopped.stop()
+    for _ in range(5):
+        gate.release()  # lets a pass in progress end; the stream stops at the next image
+    assert stopped.wait(timeout=60) is None and not stopped.complete
+
+    class Broken(DefaultFeatureTeacher):  # breaks after its first pass
+        calls = 0
+
+        def __call__(self, image):
+            Broken.calls += 1
+            if Broken.calls > 1:
+                raise UserError("the teacher broke")
+            return super().__call__(image)
+
+    broken = FeatureStream(imgs, Broken(), tmp_path / "d", dims=8)
+    with pytest.raises(UserError, match="the teacher broke"):
+        broken.wait(timeout=60)
+    with pytest.raises(UserError, match="the teacher broke"):
+        broken.poll()
+
+
+def test_feature_stream_knows_the_code_size_before_its_pca(tmp_path):
+    """A teacher with fewer channels than the asked dims gets codes of its channel count (what the PCA keeps), known
+    before any code exists: the trainer sizes the field's feature head from it (a tiny CLIP gave 8 of 12)."""
+    from repaint_nerf.core.teachers.feature_stream import FeatureStream
+
+    class Five(DefaultFeatureTeacher):
+        def __call__(self, image):
+            return super().__call__(image)[..., :5]
+
+    imgs = [toy_image(seed=s)[0] for s in range(3)]
+    stream = FeatureStream(imgs, Five(), tmp_path, dims=8)
+    assert stream.dims == 5 and stream.wait(timeout=60).dims == 5
+    assert FeatureStream(imgs, Five(), tmp_path, dims=8).dims == 5  # read off the cached basis the second time

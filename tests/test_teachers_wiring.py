@@ -96,6 +96,7 @@ def test_reopening_uses_the_saved_teacher_and_cache(onnx_ws, models, tmp_path, m
     before = sorted(p.relative_to(onnx_ws.teachers_dir) for p in onnx_ws.teachers_dir.rglob("*"))
     eng = Engine("cpu")
     eng.load(onnx_ws.root)
+    eng.trainer.feature_stream.wait()  # the codes are read on the teacher's thread
     assert len(built) == 1 and built[0].config() == _onnx_teacher(models).config()
     assert sorted(p.relative_to(onnx_ws.teachers_dir) for p in onnx_ws.teachers_dir.rglob("*")) == before
     assert onnx_ws.settings["feature_model"]["path"] == str(models["feature"].resolve())
@@ -143,10 +144,14 @@ def test_feature_size_parsing(text, capsys, tmp_path, scene):
 
 
 def test_choice_order_flag_setting_env_default(tmp_path, models, monkeypatch):
-    from repaint_nerf.core.teachers.stage1_targets import FeatureModel, choose_feature_model
+    import repaint_nerf.core.teachers.feature_lite as lite
+    from repaint_nerf.core.teachers.stage1_targets import LITE_BLEND, FeatureModel, choose_feature_model
 
     ws = Workspace.create(tmp_path / "ws")
-    assert choose_feature_model(ws) == (FeatureModel(), "default")
+    assert choose_feature_model(ws) == (FeatureModel(LITE_BLEND), "default")  # CI installs the lite extra
+    with monkeypatch.context() as m:
+        m.setattr(lite, "available", lambda: False)
+        assert choose_feature_model(ws) == (FeatureModel(), "default")  # without it, the built-in teacher
     with pytest.raises(UserError, match="--feature-model"):
         choose_feature_model(ws, input_size=(8, 8))
     monkeypatch.setenv("REPAINT_NERF_MODELS", str(models["feature"].parent))

@@ -414,3 +414,66 @@ def test_cli_bad_input(tmp_path, capsys):
     (tmp_path / "notws" / "x.txt").write_text("hi")
     assert main(["render", str(tmp_path / "notws"), "--out", str(tmp_path / "o")]) == 2
     assert "not a repaint-nerf workspace" in capsys.readouterr().err
+
+
+class _ManualStream:
+    """A feature stream (core.teachers.feature_stream) whose codes the test hands over itself."""
+
+    def __init__(self, maps):
+        self.maps, self.dims, self.sizes = maps, maps[0].shape[-1], [m.shape[:2] for m in maps]
+        self.pending, self.received, self.stopped = [], 0, False
+
+    def __len__(self):
+        return len(self.maps)
+
+    def send(self, *views):
+        self.pending += [(i, torch.from_numpy(self.maps[i]).half()) for i in views]
+
+    def poll(self):
+        out, self.pending = self.pending, []
+        self.received += len(out)
+        return out
+
+    @property
+    def complete(self):
+        return self.received == len(self.maps)
+
+    def stop(self):
+        self.stopped = True
+
+
+def test_features_streamed_in_join_the_loss_view_by_view(tiny_scene, standin_field, monkeypatch):
+    """With codes still being computed, colour trains alone; each view's feature loss joins when its codes
+    arrive (only its rays count), and once all have arrived the trainer drops the stream."""
+    import repaint_nerf.core.train.stage1 as stage1
+
+    _, scene = tiny_scene
+    spy = _Spy(stage1.render_rays)
+    monkeypatch.setattr(stage1, "render_rays", spy)
+    n = len(scene.train)
+    maps = [np.full((32, 32, 4), float(i + 1), np.float32) for i in range(n)]
+    stream = _ManualStream(maps)
+    tr = stage1.Stage1Trainer(scene, None, _cfg(rays_per_batch=512), feature_targets=stream)
+    assert tr.field_cfg.feature_dim == 4 and tr.feature_stream is stream
+    info = tr.step()
+    assert "feature" not in info and "feature" not in spy.outputs[-1]  # nothing to distil yet: not rendered
+    targets, real = [], stage1.losses.feature_loss
+    monkeypatch.setattr(stage1.losses, "feature_loss", lambda pred, target: (targets.append(target), real(pred, target))[1])
+    batches, make = [], tr.make_batch
+    monkeypatch.setattr(tr, "make_batch", lambda: (batches.append(make()), batches[-1])[1])
+    stream.send(2)
+    tr.step()
+    from_2 = batches[0]["image"] == 2
+    assert len(targets) == 1 and 0 < len(targets[0]) == int(from_2.sum())  # view 2's rays only
+    assert torch.equal(targets[0], batches[0]["feature"][from_2]) and float(targets[0].max()) == 3.0
+    assert "feature" in spy.outputs[-1] and bool(tr.feature_ready[2]) and int(tr.feature_ready.sum()) == 1
+    a, b = int(tr.feat_offsets[2]), int(tr.feat_offsets[3])
+    assert torch.all(tr.features[a:b] == 3.0) and torch.all(tr.features[:a] == 0)
+    batch = tr.make_batch()
+    assert torch.equal(batch["feature_ready"], batch["image"] == 2)
+    stream.send(*[i for i in range(n) if i != 2])
+    tr.close()
+    assert stream.stopped
+    tr.step()
+    assert tr.feature_stream is None and tr.feature_ready is None and "feature_ready" not in tr.make_batch()
+    assert torch.equal(tr.features, torch.cat([torch.from_numpy(m).reshape(-1, 4) for m in maps]).half())

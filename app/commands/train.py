@@ -195,6 +195,11 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(signal.SIGINT, previous)
         bar.close(trainer.step_count, ema["psnr"])
     path = trainer.save_checkpoint()
+    pending = trainer.feature_stream
+    if pending is not None:  # a run shorter than the teacher: what it made stays cached for --resume
+        trainer.close()
+        print(f"teacher features reached {pending.received} of {len(pending)} views during training; "
+              f"a --resume run distils the rest", file=sys.stderr)
     if stop.is_set():
         print(f"stopped at step {trainer.step_count}; checkpoint saved to {path}\n"
               f"continue with: repaint-nerf train {args.scene} --workspace {args.workspace} --resume", file=sys.stderr)

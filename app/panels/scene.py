@@ -32,6 +32,9 @@ def status_line(st: dict) -> str:
         parts.append(f"loss {loss:.4f}")
     if isinstance(psnr, (int, float)) and math.isfinite(psnr):
         parts.append(f"{PSNR_LABELS.get(st.get('phase'), 'PSNR')} {psnr:.2f} dB")
+    ready = st.get("features_ready")
+    if ready and ready[0] < ready[1]:  # the teacher still runs beside training (core.teachers.feature_stream)
+        parts.append(f"teacher features {ready[0]}/{ready[1]} views")
     return "  ".join(parts)
 
 
@@ -51,7 +54,8 @@ def _feature_teacher(app) -> None:
     if not opened:
         imgui.set_item_tooltip("what the field's features (selection) are distilled from, used when a scene is "
                                "opened; untouched: the workspace's saved teacher, else $REPAINT_NERF_FEATURE_MODEL, "
-                               "else the built-in one")
+                               "else efficientnet-lite0 + built-in where the lite extra is installed, else the "
+                               "built-in one")
     else:
         for name in feature_choices(saved, s.feature_model):
             if imgui.selectable(feature_label(name), name == shown)[0]:

@@ -54,9 +54,7 @@ class PCACodec:
         """(H, W, D) float -> (h, w, K) float16 codes, h = round(H * scale) (area-averaged when < 1)."""
         f = np.asarray(features, dtype=np.float32)
         if scale != 1.0:
-            h = max(1, int(round(f.shape[0] * scale)))
-            w = max(1, int(round(f.shape[1] * scale)))
-            f = _resize(f, (h, w), cv2.INTER_AREA)
+            f = _resize(f, code_size(f.shape[:2], scale), cv2.INTER_AREA)
         codes = (f.reshape(-1, f.shape[-1]) - self.mean) @ self.basis
         return codes.reshape(*f.shape[:2], self.dims).astype(np.float16)
 
@@ -72,6 +70,13 @@ class PCACodec:
     def from_arrays(d: dict[str, np.ndarray]) -> "PCACodec":
         return PCACodec(np.asarray(d["basis"], np.float32), np.asarray(d["mean"], np.float32),
                         float(np.asarray(d.get("explained", [1.0]))[0]))
+
+
+def code_size(size: tuple[int, int], scale: float = 1.0) -> tuple[int, int]:
+    """(h, w) of the codes `PCACodec.encode` makes of an (H, W) feature map at `scale`."""
+    if scale == 1.0:
+        return int(size[0]), int(size[1])
+    return max(1, int(round(size[0] * scale))), max(1, int(round(size[1] * scale)))
 
 
 def upsample_codes(codes: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -122,8 +122,8 @@ def _locate(kind: str, value: str, source: str) -> tuple[Path, str]:
 def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, int] | None = None,
                          norm: str | None = None) -> tuple[FeatureModel, str]:
     """(choice, source): `model` ('default' or a path) > the workspace's saved choice > the environment >
-    the default teacher. `input_size` / `norm` override those of the chosen ONNX model. A workspace trained
-    before choices were saved keeps the default teacher it was trained with."""
+    `default_feature_model()`. `input_size` / `norm` override those of the chosen ONNX model. A workspace
+    trained before choices were saved keeps the built-in teacher it was trained with."""
     from repaint_nerf.core.teachers.feature_onnx import ENV_FEATURE_MODEL
 
     settings = ws.settings
@@ -131,12 +131,14 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
         choice = FeatureModel() if model == DEFAULT_FEATURE else FeatureModel(str(model)), "flag"
     elif FEATURE_SETTING in settings:
         choice = FeatureModel.from_setting(settings[FEATURE_SETTING], ws.root / "settings.json"), "setting"
-    elif _trained(ws) or not _env_model(ENV_FEATURE_MODEL, "features.onnx", "feature"):
+    elif _trained(ws):
         choice = FeatureModel(), "default"
+    elif not _env_model(ENV_FEATURE_MODEL, "features.onnx", "feature"):
+        choice = default_feature_model(), "default"
     else:
         choice = FeatureModel(_env_model(ENV_FEATURE_MODEL, "features.onnx", "feature")), "env"
     fm, source = choice
-    if (input_size is not None or norm is not None) and fm.path is None:
+    if (input_size is not None or norm is not None) and (fm.path is None or source == "default"):
         raise UserError("--feature-size and --feature-norm describe a feature model, and none is chosen",
                         hint="pass --feature-model PATH.onnx / FOLDER / MODEL_ID too "
                              "(or set REPAINT_NERF_FEATURE_MODEL)")
@@ -144,6 +146,16 @@ def choose_feature_model(ws, model: str | None = None, input_size: tuple[int, in
         fm = FeatureModel(fm.path, input_size if input_size is not None else fm.input_size,
                           check_norm(norm if norm is not None else fm.norm))
     return fm, source
+
+
+def default_feature_model() -> FeatureModel:
+    """The teacher a new workspace distils when nothing names one: EfficientNet-Lite0 blended with the built-in
+    teacher where the `lite` extra is installed, else the built-in teacher. The blend's masks are better on
+    scenes not designed around either teacher, a training step costs the same, and its features are computed
+    beside training (core.teachers.feature_stream), so it delays no first step (docs/MODELS.md)."""
+    from repaint_nerf.core.teachers.feature_lite import available
+
+    return FeatureModel(LITE_BLEND) if available() else FeatureModel()
 
 
 def saved_feature_name(settings: dict) -> str | None:
@@ -219,12 +231,12 @@ def workspace_feature_teacher(ws):
     return make_feature_teacher(*choose_feature_model(ws))
 
 
-def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = None,
-                    input_size: tuple[int, int] | None = None, norm: str | None = None,
-                    notes: list | None = None):
-    """Teacher feature codes of the training images (cached under the workspace's teachers/); the chosen
-    teacher is saved in the settings only once its features are computed."""
-    from repaint_nerf.core.teachers.cache import build_feature_store
+def feature_stream(scene, ws, dims: int = FEATURE_DIMS, model: str | None = None,
+                   input_size: tuple[int, int] | None = None, norm: str | None = None, notes: list | None = None):
+    """Teacher feature codes of the training images, computed on a background thread and cached under the
+    workspace's teachers/ (core.teachers.feature_stream): stage 1 trains colour meanwhile. The teacher is built
+    here, so a missing or broken model fails before any work, and then saved in the settings."""
+    from repaint_nerf.core.teachers.feature_stream import FeatureStream
 
     fm, source = choose_feature_model(ws, model, input_size, norm)
     teacher = make_feature_teacher(fm, source)
@@ -233,10 +245,17 @@ def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = Non
     old = ws.settings.get(FEATURE_SETTING, "unset")
     if notes is not None and old != "unset" and old != fm.to_setting():
         notes.append(f"feature teacher changed to {fm.label}: the feature field now learns it (select again)")
-    store = build_feature_store(scene.train.images, teacher, ws.teachers_dir, dims=dims)
+    stream = FeatureStream(scene.train.images, teacher, ws.teachers_dir, dims=dims)
     ws.update_settings(**{FEATURE_SETTING: fm.to_setting(), "teacher": getattr(teacher, "name", DEFAULT_FEATURE),
                           "feature_dims": int(dims)})
-    return store.codes
+    return stream
+
+
+def feature_targets(scene, ws, dims: int = FEATURE_DIMS, model: str | None = None,
+                    input_size: tuple[int, int] | None = None, norm: str | None = None,
+                    notes: list | None = None):
+    """Teacher feature codes of the training images, all of them (`feature_stream`, waited for)."""
+    return feature_stream(scene, ws, dims, model, input_size, norm, notes).wait().codes
 
 
 def workspace_codec(scene, ws, teacher):

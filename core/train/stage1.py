@@ -261,6 +261,8 @@ class Stage1Trainer:
         if self.cfg.grid_resolution <= 0:
             self.cfg = dataclasses.replace(self.cfg, grid_resolution=grid_resolution_for(self.device))
 
+        self.feature_stream = None  # codes still arriving (core.teachers.feature_stream)
+        self.feature_ready: torch.Tensor | None = None  # per image: its codes are in self.features
         self.features = self._prepare_features(feature_targets) if feature_targets is not None else None
         if field_cfg is None:  # a fresh field (a resumed one keeps its saved config)
             field_cfg = with_appearance(warped_config(scene, self.device, side) if self.cfg.scene_warp else None,
@@ -296,7 +298,8 @@ class Stage1Trainer:
         bg = scene.background
         self.fixed_background = None if bg is None else torch.tensor(bg, dtype=torch.float32, device=self.device)
         if not self.cfg.lambda_feature:
-            self.features = None  # weight 0: the feature head is never rendered
+            self.close()
+            self.features = self.feature_stream = self.feature_ready = None  # weight 0: never rendered
         if not self.cfg.lambda_depth:
             self.depth = self.depth_pixels = None
         self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
@@ -319,16 +322,41 @@ class Stage1Trainer:
             return torch.optim.Adam(groups, foreach=True, **kw)
 
     def _prepare_features(self, targets) -> torch.Tensor:
+        """Per-image (h, w, K) feature codes as one flat float16 tensor. A stream (core.teachers.feature_stream)
+        gives zeros to start with and `_take_features` fills each image's rows as its codes arrive."""
         n = len(self.scene.train)
         if len(targets) != n:
             raise ValueError(f"{len(targets)} feature maps for {n} training images")
-        maps = [torch.as_tensor(np.asarray(targets[i])) for i in range(n)]
-        self.feature_dim = int(maps[0].shape[-1])
-        self.feat_h = torch.tensor([m.shape[0] for m in maps], device=self.device)
-        self.feat_w = torch.tensor([m.shape[1] for m in maps], device=self.device)
-        offs = np.concatenate([[0], np.cumsum([m.shape[0] * m.shape[1] for m in maps])])
+        if hasattr(targets, "poll"):
+            self.feature_stream, sizes, self.feature_dim = targets, list(targets.sizes), int(targets.dims)
+            self.feature_ready = torch.zeros(n, dtype=torch.bool, device=self.device)
+        else:
+            maps = [torch.as_tensor(np.asarray(targets[i])) for i in range(n)]
+            sizes, self.feature_dim = [tuple(m.shape[:2]) for m in maps], int(maps[0].shape[-1])
+        self.feat_h = torch.tensor([h for h, _ in sizes], device=self.device)
+        self.feat_w = torch.tensor([w for _, w in sizes], device=self.device)
+        offs = np.concatenate([[0], np.cumsum([h * w for h, w in sizes])])
         self.feat_offsets = torch.as_tensor(offs, device=self.device)
+        if self.feature_stream is not None:
+            return torch.zeros(int(offs[-1]), self.feature_dim, dtype=torch.float16, device=self.device)
         return torch.cat([m.reshape(-1, self.feature_dim).to(torch.float16) for m in maps]).to(self.device)
+
+    def _take_features(self) -> None:
+        """Copy the codes a feature stream made since the last step into the targets; once every image has
+        them, the stream is dropped and every ray has a feature target again."""
+        if self.feature_stream is None:
+            return
+        for i, codes in self.feature_stream.poll():
+            a, b = int(self.feat_offsets[i]), int(self.feat_offsets[i + 1])
+            self.features[a:b] = codes.reshape(-1, self.feature_dim).to(self.features.device, torch.float16)
+            self.feature_ready[i] = True
+        if self.feature_stream.complete:
+            self.feature_stream = self.feature_ready = None
+
+    def close(self) -> None:
+        """Stop background work (a feature stream): the trainer is being replaced."""
+        if self.feature_stream is not None:
+            self.feature_stream.stop()
 
     def _prepare_depth(self, priors) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Depth priors as z-depth in field units per flat pixel (NaN = none), and the pixels that have one
@@ -426,6 +454,8 @@ class Stage1Trainer:
             # empty space renders a zero feature (no background term), so a transparent pixel's target
             # is zero: the teacher saw it composited over white, and chasing that made floaters
             batch["feature"] = feat * px[:, 3:4].to(feat.dtype) if self.has_alpha else feat
+            if self.feature_ready is not None:
+                batch["feature_ready"] = self.feature_ready[img]
         if self.depth is not None:
             batch["depth"] = self.depth[idx]
         return batch
@@ -459,8 +489,21 @@ class Stage1Trainer:
     def step(self) -> dict[str, Any]:
         """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took.
 
-        With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device).
+        With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device). While a
+        feature stream's teacher runs on the CPU, the step leaves it its threads: both pools on the same cores
+        made each wait on the other (fox, 2 cores: 1.06 steps/s beside the teacher, 6.3 after it).
         """
+        stream = self.feature_stream
+        if stream is None or self.device.type != "cpu":
+            return self._step()
+        threads = torch.get_num_threads()  # this thread's pool (torch's setting is per thread)
+        torch.set_num_threads(max(1, threads - getattr(stream, "threads", 1)))
+        try:
+            return self._step()
+        finally:
+            torch.set_num_threads(threads)
+
+    def _step(self) -> dict[str, Any]:
         prof = self.profile
         times: dict[str, float] = {}
         t0 = tick = time.perf_counter()
@@ -477,11 +520,14 @@ class Stage1Trainer:
         self.grid.update(self.step_count, self.field.density)
         lap("grid_update")
         lr = self._set_lr()
+        self._take_features()
         batch = self.make_batch()
         lap("batch")
         every = self.cfg.grid_update_every
         one_pass = self.filter_kept >= self.cfg.one_pass_kept and self.step_count % every != 0
-        opts = RenderOptions(outputs=self.outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
+        ready = batch.get("feature_ready")
+        outputs = self.outputs if ready is None or bool(ready.any()) else tuple(o for o in self.outputs if o != "feature")
+        opts = RenderOptions(outputs=outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
                              one_pass=one_pass, appearance=batch["image"])
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
@@ -492,8 +538,10 @@ class Stage1Trainer:
                 self.fog_cleared_step = self.step_count
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
-        if self.features is not None:
+        if "feature" in outputs and ready is None:
             parts["feature"] = losses.feature_loss(out["feature"], batch["feature"])
+        elif "feature" in outputs:  # only the views whose codes have arrived
+            parts["feature"] = losses.feature_loss(out["feature"][ready], batch["feature"][ready])
         if self.depth is not None:
             valid = torch.isfinite(batch["depth"])
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)
@@ -595,6 +643,8 @@ class Stage1Trainer:
         info = self.train(steps=self.step_count + 1) or {}
         if seconds > info.get("seconds", 0.0) and not (stop is not None and stop()):
             info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0), stop=stop) or info
+        if self.feature_stream is not None:  # the editor says how far the teacher has got
+            info = {**info, "features_ready": [self.feature_stream.received, len(self.feature_stream)]}
         return info
 
     # -- evaluation ---------------------------------------------------------------------------------
