@@ -112,6 +112,13 @@ class Trained:
     header: CheckpointHeader
     path: Path  # the checkpoint or version file it came from
 
+    def render_options(self, **kw):
+        """RenderOptions at the sample budget the field was trained with (as the editor renders it): a finer
+        step costs more per view for the same picture (fox: 4x the budget, 3.3x the time)."""
+        from repaint_nerf.core.render.renderer import RenderOptions
+
+        return RenderOptions(max_samples=self.header.max_samples, **kw)
+
 
 def open_trained(workspace: str | Path | Workspace, device: torch.device | str | None = None,
                  need_features: bool = False) -> Trained:

@@ -421,7 +421,7 @@ class _ManualStream:
 
     def __init__(self, maps):
         self.maps, self.dims, self.sizes = maps, maps[0].shape[-1], [m.shape[:2] for m in maps]
-        self.pending, self.received, self.stopped = [], 0, False
+        self.pending, self.received, self.stopped, self.threads = [], 0, False, 1
 
     def __len__(self):
         return len(self.maps)

@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
     from repaint_nerf.app.camera_control import CameraControl
     from repaint_nerf.core.errors import UserError
-    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+    from repaint_nerf.core.render.renderer import render_camera
     from repaint_nerf.core.scene.cameras import Cameras
     from repaint_nerf.core.session import open_trained
     from repaint_nerf.core.train.metrics import psnr
@@ -61,8 +61,7 @@ def run(args: argparse.Namespace) -> int:
     device = next(field.parameters()).device
     bg = torch.tensor(scene.background or (1.0, 1.0, 1.0), dtype=torch.float32, device=device)
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
-    opts = RenderOptions(outputs=outputs, background=bg, perturb=False,
-                         max_samples=trained.header.max_samples)  # render as it was trained
+    opts = trained.render_options(outputs=outputs, background=bg, perturb=False)  # render as it was trained
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
 

@@ -92,7 +92,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from repaint_nerf.core.render.renderer import RenderOptions
     from repaint_nerf.core.select.autothreshold import selection_auto_threshold, text_auto_threshold
     from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, ViewCache, check_threshold, masks_for_views, write_masks
     from repaint_nerf.core.select.selection import Selection
@@ -109,9 +108,7 @@ def run(args: argparse.Namespace) -> int:
     refine = workspace_refiner(ws, scene.train.images, args.sam_path)  # a missing SAM fails before any render
 
     t0 = time.perf_counter()
-    # rendered as trained (and as the editor renders it): a finer step than the field learned costs 3.5x per
-    # view for the same masks (fox capture, 256 against 1024 steps: 14.7 s a view)
-    cache = ViewCache(field, grid, cams, render_opts=RenderOptions(max_samples=trained.header.max_samples))
+    cache = ViewCache(field, grid, cams, render_opts=trained.render_options())
     sel = Selection(threshold=DEFAULT_THRESHOLD if threshold is None else threshold,
                     cleanup=not args.no_cleanup and bool(patches),  # text: no seed patch
                     teacher=str(ws.settings.get("teacher") or "default"))

@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import torch
 
-from repaint_nerf.core.teachers.base import FeatureTeacher, check_image
 from repaint_nerf.core.teachers import cache
+from repaint_nerf.core.teachers.base import FeatureTeacher, check_image
 from repaint_nerf.core.teachers.cache import FeatureStore
 from repaint_nerf.core.teachers.codec import MAX_DIMS, code_size
 
@@ -50,9 +50,8 @@ class FeatureStream:
                  scale: float = 1.0, threads: int = STREAM_THREADS):
         self.dims = _code_dims(images, teacher, folder, int(dims), scale)
         self.sizes = [code_size(np.asarray(im).shape[:2], scale) for im in images]
-        self.teacher_name = getattr(teacher, "name", "")
-        self._args = (images, teacher, folder)
-        self._scale, self.threads = scale, threads  # the teacher thread's intra-op threads
+        self._images, self._teacher, self._folder, self._scale = images, teacher, folder, scale
+        self.threads = threads  # the teacher thread's intra-op threads (the trainer leaves them to it)
         self._ready: queue.SimpleQueue = queue.SimpleQueue()
         self._stop = threading.Event()
         self._done = threading.Event()
@@ -73,10 +72,10 @@ class FeatureStream:
             if self._stop.is_set():
                 raise _Stopped
 
-        images, teacher, folder = self._args
         try:
-            self._store = cache.build_feature_store(images, teacher, folder, dims=self.dims, scale=self._scale,
-                                              progress=check, on_codes=lambda i, c: self._ready.put((i, c)))
+            self._store = cache.build_feature_store(self._images, self._teacher, self._folder, dims=self.dims,
+                                                    scale=self._scale, progress=check,
+                                                    on_codes=lambda i, c: self._ready.put((i, c)))
         except _Stopped:
             pass
         except BaseException as exc:  # handed to the polling thread, which reports it

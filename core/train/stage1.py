@@ -497,7 +497,7 @@ class Stage1Trainer:
         if stream is None or self.device.type != "cpu":
             return self._step()
         threads = torch.get_num_threads()  # this thread's pool (torch's setting is per thread)
-        torch.set_num_threads(max(1, threads - getattr(stream, "threads", 1)))
+        torch.set_num_threads(max(1, threads - stream.threads))
         try:
             return self._step()
         finally:
@@ -526,7 +526,10 @@ class Stage1Trainer:
         every = self.cfg.grid_update_every
         one_pass = self.filter_kept >= self.cfg.one_pass_kept and self.step_count % every != 0
         ready = batch.get("feature_ready")
-        outputs = self.outputs if ready is None or bool(ready.any()) else tuple(o for o in self.outputs if o != "feature")
+        if ready is not None and not bool(ready.any()):  # no view has its codes yet: nothing to distil
+            outputs = tuple(o for o in self.outputs if o != "feature")
+        else:
+            outputs = self.outputs
         opts = RenderOptions(outputs=outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
                              one_pass=one_pass, appearance=batch["image"])
@@ -538,10 +541,11 @@ class Stage1Trainer:
                 self.fog_cleared_step = self.step_count
         color = losses.color_loss(out["rgb"], batch["rgb"], self.cfg.color_loss, self.cfg.huber_delta)
         parts: dict[str, torch.Tensor] = {"color": color}
-        if "feature" in outputs and ready is None:
-            parts["feature"] = losses.feature_loss(out["feature"], batch["feature"])
-        elif "feature" in outputs:  # only the views whose codes have arrived
-            parts["feature"] = losses.feature_loss(out["feature"][ready], batch["feature"][ready])
+        if "feature" in outputs:
+            pred, target = out["feature"], batch["feature"]
+            if ready is not None:  # only the views whose codes have arrived
+                pred, target = pred[ready], target[ready]
+            parts["feature"] = losses.feature_loss(pred, target)
         if self.depth is not None:
             valid = torch.isfinite(batch["depth"])
             parts["depth"] = losses.depth_loss(out["depth"] * batch["dz"], batch["depth"], valid)

@@ -10,7 +10,6 @@ def _recompute_masks(trained) -> str:
     """The saved selection's masks of every training view, written into WS/masks as `select` writes them."""
     import torch
 
-    from repaint_nerf.core.render.renderer import RenderOptions
     from repaint_nerf.core.select.masks import ViewCache, masks_for_views
     from repaint_nerf.core.select.selection import Selection
 
@@ -23,7 +22,7 @@ def _recompute_masks(trained) -> str:
     with torch.no_grad():
         masks = masks_for_views(trained.field, trained.grid, cams, sel, workspace=ws,
                                 cache=ViewCache(trained.field, trained.grid, cams,
-                                                render_opts=RenderOptions(max_samples=trained.header.max_samples)),
+                                                render_opts=trained.render_options()),
                                 names=list(scene.train.names or []) or None, images=scene.train.images)
     return f"masks: recomputed {len(masks)} view(s) from selections/current.json"
 
