@@ -235,7 +235,7 @@ class EditorApp:
                 self.guide.done("select")
                 self._vote_paused = None  # a vote for an older selection is moot
                 if msg.name == "select":  # a PatchSelected: the map and its automatic threshold
-                    self.viewport.upload_similarity(msg.value.similarity)
+                    self.viewport.upload_similarity(msg.value.similarity, msg.value.region)
                     selection_panel.take_auto_threshold(s, msg.value.auto_threshold)
                     if msg.value.auto_threshold is not None:  # the training views vote on it, after this mask
                         self._refine_after = msg.value.auto_threshold

@@ -3,7 +3,8 @@
 Each view mode is one fragment shader over the same full-target triangle. The frame is drawn into an
 offscreen framebuffer at the viewport's pixel size and shown with `imgui.image`, so panels can overlap
 it. The similarity map is a float texture and the threshold a uniform: moving the slider redraws,
-it does not re-render.
+it does not re-render. The mask overlay thresholds the similarity where the selection's region reaches (grown
+from its anchors, not across depth edges, as the masks grow it), so it shows the object, not its colour.
 """
 from __future__ import annotations
 
@@ -87,16 +88,19 @@ class Viewport:
             flat = f.reshape(-1, 3)
             self.feature_range = (tuple(np.percentile(flat, 1, axis=0)), tuple(np.percentile(flat, 99, axis=0)))
         if frame.get("similarity") is not None:
-            self.upload_similarity(frame["similarity"])
+            self.upload_similarity(frame["similarity"], frame.get("region"))
 
-    def upload_similarity(self, sim: np.ndarray | None) -> None:
-        if sim is None:
-            tex = self.textures.pop("sim", None)
-            if tex is not None:
-                tex.release()
-                self._uploads += 1
-            return
-        self._upload("sim", sim)
+    def upload_similarity(self, sim: np.ndarray | None, region: np.ndarray | None = None) -> None:
+        """The similarity map (None clears it) and the overlay's map (the similarity where the selection's region
+        reaches, Selection.region_map): the mask mode thresholds the latter when there is one."""
+        for name, data in (("sim", sim), ("region", None if sim is None else region)):
+            if data is None:
+                tex = self.textures.pop(name, None)
+                if tex is not None:
+                    tex.release()
+                    self._uploads += 1
+            else:
+                self._upload(name, data)
 
     def available_modes(self) -> list[str]:
         need = {"rgb": ["rgb"], "depth": ["depth"], "feature": ["feature"], "similarity": ["sim"], "mask": ["rgb", "sim"]}
@@ -124,8 +128,8 @@ class Viewport:
             self.fbo = self.ctx.framebuffer(color_attachments=[self.color])
         prog = self.programs[mode]
         units = {"rgb": ("rgb_tex", "rgb"), "depth": ("depth_tex", "depth"), "feature": ("feature_tex", "feature"),
-                 "similarity": ("sim_tex", "sim")}
-        names = {"mask": ["rgb", "similarity"]}.get(mode, [mode])
+                 "similarity": ("sim_tex", "sim"), "region": ("sim_tex", "region")}
+        names = {"mask": ["rgb", "region" if "region" in self.textures else "similarity"]}.get(mode, [mode])
         for unit, key in enumerate(names):
             uniform, tex = units[key]
             self.textures[tex].use(location=unit)

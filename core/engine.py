@@ -65,11 +65,13 @@ class FeatureView(NamedTuple):
 
 @dataclasses.dataclass
 class PatchSelected:
-    """What a patch selection gives the view: its similarity map (H, W) and the query's automatic threshold
-    (None for a subtracted patch), both computed on the engine's thread."""
+    """What a patch selection gives the view: its similarity map (H, W), the query's automatic threshold
+    (None for a subtracted patch) and the overlay's map (Selection.region_map; None without anchors in view),
+    all computed on the engine's thread."""
 
     similarity: np.ndarray
     auto_threshold: float | None
+    region: np.ndarray | None = None
 
 
 class FeatureUnavailable(UserError):
@@ -261,7 +263,12 @@ class Engine:
         result["capped"] = capped  # the finest render this view gets: the viewport needs no refinement
         if self.selection is not None and "feature" in out:
             result["similarity"] = _np(self.selection.similarity(out["feature"].float()))
+            result["region"] = self._region(result["similarity"], self._feature_cache)
         return result
+
+    def _region(self, similarity: np.ndarray, view: "FeatureView") -> np.ndarray | None:
+        """The overlay's map of a view (Selection.region_map): None where it sees no anchor."""
+        return self.selection.region_map(similarity, view.depth, view.opacity, view.camera, view.expected_depth)
 
     @staticmethod
     def _camera_key(cameras) -> tuple:
@@ -295,7 +302,7 @@ class Engine:
         if mode != "sub":  # saved with the selection, and the editor's slider starts at it
             auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera,
                                                view.expected_depth)
-        return PatchSelected(similarity, auto)
+        return PatchSelected(similarity, auto, self._region(similarity, view))
 
     def refine_threshold(self, own: float, cancel: Callable[[], bool] | None = None) -> float | None:
         """The newest free-view patch's automatic threshold (`own`, what `select` returned) once the training

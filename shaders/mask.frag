@@ -1,5 +1,6 @@
 #version 330
-// Mask overlay on RGB: pixels with similarity above the threshold (a uniform: the slider costs one draw) are tinted.
+// Mask overlay on RGB: pixels whose map value (the similarity where the selection's region reaches) is above the
+// threshold (a uniform: the slider costs one draw) are tinted.
 uniform sampler2D rgb_tex;
 uniform sampler2D sim_tex;
 uniform float threshold;

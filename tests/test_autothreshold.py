@@ -760,3 +760,36 @@ def test_a_band_of_lower_similarity_does_not_cut_the_object():
     assert a.value > 0.3, a.value
     assert _iou(grow(sim > a.value, seeds, depth_edges(depth, opacity)), block) > 0.95
 
+
+def test_region_levels_hold_every_thresholds_region():
+    """region_levels >= k is the region `region_areas_reference` grows at thresholds[k], pixel for pixel, and
+    region_similarity's map above t is that region (to a grid step) at the map's full size, seeded by scattered
+    single pixels as projected anchors are."""
+    from repaint_nerf.core.select.autothreshold import GRID, region_levels, region_similarity
+
+    rng = np.random.default_rng(3)
+    import cv2
+
+    sim = cv2.GaussianBlur(rng.random((40, 56)).astype(np.float32), (7, 7), 2.0)
+    seeds = np.zeros(sim.shape, bool)
+    seeds[18:22, 25:30] = True
+    barrier = np.zeros(sim.shape, bool)
+    barrier[:, 40] = True
+    levels = region_levels(sim, seeds, barrier)
+    for k in (0, 20, 45, 70):
+        allowed = ((sim > GRID[k]) | seeds) & ~barrier
+        np.testing.assert_array_equal(levels >= k, grow(allowed, seeds & ~barrier))
+    assert (levels[:, 40:] < 0).all()
+
+    # two discs of one similarity, walled apart by depth; two scattered seed pixels on the left one
+    h, w = 200, 256
+    left, right = _disc(h, w, 100, 70, 40), _disc(h, w, 100, 190, 40)
+    sim = np.where(left | right, 0.8, 0.1).astype(np.float32)
+    depth = np.where(left, 2.0, np.where(right, 3.0, 6.0)).astype(np.float32)
+    seeds = np.zeros((h, w), bool)
+    seeds[95, 61], seeds[108, 77] = True, True
+    region = region_similarity(sim, seeds, depth, np.ones((h, w), np.float32))
+    assert region.shape == sim.shape and (region <= sim).all()
+    for t in (0.3, 0.5, 0.75):
+        assert (region > t)[left].mean() > 0.95 and not (region > t)[right].any()
+    assert not (region > 0.85).any()

@@ -336,6 +336,46 @@ def _free_camera(size=48):
     return Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, size / 2, size / 2, size, size)
 
 
+def test_the_overlay_shows_the_selected_ball_not_its_look_alike(scene_factory, tmp_path):
+    """The editor's mask overlay thresholds Engine's 'region' map (Selection.region_map): in the patch's free
+    view and after the camera moves to a training view, `region > t` holds the patch's ball and none of the
+    look-alike ball of its feature that `similarity > t` also covers; a view that sees no anchor has none."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from repaint_nerf.core.engine import Engine
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+
+    eng = Engine("cpu")
+    eng.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    eng.field, eng.grid = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]]), None
+    eng.field.cfg = SimpleNamespace(feature_dim=3)
+    free = _free_camera()
+    ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
+    cy, cx = np.median(ys) / 48, np.median(xs) / 48
+    picked = eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05))
+    t = picked.auto_threshold
+    train = eng.scene.field_cameras("train").to("cpu")
+    apart = []  # training views that see both balls apart (where they touch at 24 px no depth edge parts them)
+    for i in range(6):
+        a, b = (_ball_gt(train, i, c, 0.22).numpy().astype(np.uint8) for c in centers[:2])
+        if a.sum() and b.sum() and not (cv2.dilate(a, np.ones((3, 3), np.uint8)) & b).any():
+            apart.append(i)
+    moved = train[torch.tensor(apart[:1])]
+    frame = eng.render(moved, outputs=("rgb",), full=True)
+    for cam, sim, region in ((free, picked.similarity, picked.region), (moved, frame["similarity"], frame["region"])):
+        ball, look_alike = (_ball_gt(cam, 0, c, 0.22).numpy() for c in centers[:2])
+        look_alike &= ~ball
+        assert region is not None and region.shape == sim.shape and (region <= sim).all()
+        assert (sim > t)[look_alike].mean() > 0.8  # the raw threshold covers the look-alike
+        assert not (region > t)[look_alike].any()
+        assert (region > t)[ball].mean() > 0.8
+    away = Cameras.create(look_at((0.0, 2.4, 0.3), (0.0, 6.0, 0.0))[None], 40.0, 40.0, 24, 24, 48, 48)
+    assert eng.render(away, outputs=("rgb",), full=True).get("region") is None  # no anchor in view: raw similarity
+
+
 def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     """The editor's patch is drawn in a camera that is not a training view: its surface points (anchors) carry it
     into the training views, so the 3D clean-up drops the look-alike there too; without them nothing is seeded."""

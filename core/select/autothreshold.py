@@ -64,36 +64,46 @@ def region_areas_reference(similarity: np.ndarray, seeds: np.ndarray, barrier: n
     return out
 
 
-def region_areas(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
-                 thresholds: np.ndarray = GRID) -> np.ndarray:
-    """`region_areas_reference`'s areas, labelling less: as t rises the region only shrinks, so each threshold
-    labels only the previous region's bounding box, within that region (the seed pixels are in every region).
-    On the editor's patch path this is most of the automatic threshold's cost."""
+def region_levels(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
+                  thresholds: np.ndarray = GRID) -> np.ndarray:
+    """Per pixel, the index of the highest of `thresholds` (ascending) whose region grown from `seeds` (as in
+    `region_areas_reference`) holds it, -1 where none does: the region at thresholds[k] is `levels >= k`.
+    As t rises the region only shrinks, so each threshold labels only the previous region's bounding box, within
+    that region (the seed pixels are in every region)."""
     s = np.asarray(similarity, np.float32)
     seeds = np.asarray(seeds, bool)
     free = np.ones(s.shape, bool) if barrier is None else ~np.asarray(barrier, bool)
     start = seeds & free
-    out = np.zeros(len(thresholds), np.int64)
+    levels = np.full(s.shape, -1, np.int16)
     if not start.any():
-        return out
+        return levels
     # the pixels a region may hold at t: similarity above t, seeds always (their level is +inf), barrier never
     level = np.where(free, np.where(seeds, np.inf, s), -np.inf).astype(np.float32)
     region = np.ones(s.shape, bool)
     y0, y1, x0, x1 = 0, s.shape[0], 0, s.shape[1]
-    for k in np.argsort(np.asarray(thresholds), kind="stable"):
+    for k, t in enumerate(np.asarray(thresholds)):
         lv, prev, st = level[y0:y1, x0:x1], region[y0:y1, x0:x1], start[y0:y1, x0:x1]
-        allowed = (lv > thresholds[k]) & prev
+        allowed = (lv > t) & prev
         n, lab = cv2.connectedComponents(allowed.view(np.uint8), connectivity=4)
         keep = np.zeros(n, bool)
         keep[lab[st]] = True
         keep[0] = False
         sub = keep[lab]
-        out[k] = int(sub.sum())
+        levels[y0:y1, x0:x1][sub] = k
         ys, xs = np.nonzero(sub.any(axis=1))[0], np.nonzero(sub.any(axis=0))[0]
         region = np.zeros(s.shape, bool)
         region[y0:y1, x0:x1] = sub
         y0, y1, x0, x1 = y0 + ys[0], y0 + ys[-1] + 1, x0 + xs[0], x0 + xs[-1] + 1
-    return out
+    return levels
+
+
+def region_areas(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
+                 thresholds: np.ndarray = GRID) -> np.ndarray:
+    """`region_areas_reference`'s areas (thresholds ascending), counted from `region_levels`. On the editor's patch
+    path this is most of the automatic threshold's cost."""
+    levels = region_levels(similarity, seeds, barrier, thresholds)
+    counts = np.bincount(levels[levels >= 0].ravel(), minlength=len(thresholds))
+    return counts[::-1].cumsum()[::-1].astype(np.int64)
 
 
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
@@ -270,6 +280,34 @@ def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: 
 def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128,
                             edges: bool = True):
     """`patch_auto_threshold` with the seed pixels given as a bool (H, W) mask; returns the AutoThreshold."""
+    s, seeds, barrier, surface = _query_maps(similarity, seeds, depth, opacity, max_side, edges)
+    return auto_threshold(s, seeds, barrier, surface=surface)
+
+
+def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128,
+                      edges: bool = True) -> np.ndarray:
+    """The similarity map (H, W) kept only where the region grown from `seeds` through it reaches (as
+    `patch_auto_threshold_px` grows it, at most `max_side` px, not across depth edges): float32 (H, W) whose
+    `> t` is that region at threshold t, to a grid step; -1 where no threshold's region reaches. The editor's
+    overlay shows this, so that the slider shows the object the masks will hold, not every pixel of its colour."""
+    full = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
+    seeds = np.asarray(seeds, bool)
+    step = int(np.ceil(max(full.shape) / float(max_side)))
+    if step > 1:  # scattered seed pixels (projected anchors) must survive the nearest-pixel downsampling
+        seeds = cv2.dilate(seeds.astype(np.uint8), np.ones((step, step), np.uint8)) > 0
+    s, small, barrier, _ = _query_maps(full, seeds, depth, opacity, max_side, edges)
+    levels = region_levels(s, small, barrier)
+    top = np.append(GRID[1:], 1.0 + 1e-6) - 1e-6  # a pixel of level k leaves the region above GRID[k]
+    reach = np.where(levels >= 0, top[np.maximum(levels, 0)], -1.0).astype(np.float32)
+    if reach.shape != full.shape:
+        reach = cv2.resize(reach, (full.shape[1], full.shape[0]), interpolation=cv2.INTER_NEAREST)
+    return np.minimum(full, reach)
+
+
+def _query_maps(similarity, seeds: np.ndarray, depth, opacity, max_side: int, edges: bool
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """(similarity, seeds, barrier, surface) of a query in one view at most `max_side` px on a side: the barrier is
+    the view's depth edges when `edges` and its depth is smooth enough to show them, else its empty pixels."""
     from repaint_nerf.core.select.geometry import MIN_OPACITY, depth_edges, rough_depth
 
     s = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
@@ -282,7 +320,7 @@ def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=N
         size = (max(1, int(round(w * f))), max(1, int(round(h * f))))
         s = cv2.resize(s, size, interpolation=cv2.INTER_AREA)
         small = cv2.resize(seeds.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-        if not small.any():  # a patch thinner than a downsampled pixel: keep its centre
+        if not small.any() and seeds.any():  # a patch thinner than a downsampled pixel: keep its centre
             ys, xs = np.nonzero(seeds)
             small[min(int(ys.mean() * f), size[1] - 1), min(int(xs.mean() * f), size[0] - 1)] = True
         seeds = small
@@ -298,7 +336,7 @@ def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=N
         surface = o > MIN_OPACITY
     else:
         surface = None if z is None else z > 0
-    return auto_threshold(s, seeds, barrier, surface=surface)
+    return s, seeds, barrier, surface
 
 
 def selection_auto_threshold(selection, maps) -> float:

@@ -90,6 +90,23 @@ class Selection:
         self.auto_threshold = views_threshold(own, others)
         return self.auto_threshold
 
+    def region_map(self, similarity: np.ndarray, depth: np.ndarray, opacity: np.ndarray, camera,
+                   edge_depth: np.ndarray | None = None) -> np.ndarray | None:
+        """This view's similarity kept where the region grown from the anchors it sees reaches
+        (`autothreshold.region_similarity`; `depth`: its median z-depth, on which the anchors are seen; edges from
+        `edge_depth`, else `depth`; `camera`: the view at the maps' size), for the editor's overlay: its slider then
+        shows what the masks will hold. None when the view sees no anchor (a text query, the object out of view)."""
+        from repaint_nerf.core.select.autothreshold import region_similarity, uses_edges
+        from repaint_nerf.core.select.geometry import project_seeds
+
+        if not len(self.anchors):
+            return None
+        seeds = project_seeds(self.anchor_points(), [np.asarray(depth, np.float32)], camera)[0]
+        if not seeds.any():
+            return None
+        return region_similarity(similarity, seeds, depth if edge_depth is None else edge_depth, opacity,
+                                 edges=uses_edges(self))
+
     def anchor_points(self) -> np.ndarray:
         """The anchors as a float32 (N, 3) array."""
         return np.asarray(self.anchors, np.float32).reshape(-1, 3)
