@@ -336,16 +336,12 @@ def _free_camera(size=48):
     return Cameras.create(look_at((0.5, -2.4, 1.9), (0, 0, 0))[None], f, f, size / 2, size / 2, size, size)
 
 
-def test_the_overlay_shows_the_selected_ball_not_its_look_alike(scene_factory, tmp_path):
-    """The editor's mask overlay thresholds Engine's 'region' map (Selection.region_map): in the patch's free
-    view and after the camera moves to a training view, `region > t` holds the patch's ball and none of the
-    look-alike ball of its feature that `similarity > t` also covers; a view that sees no anchor has none."""
+def _editor_on_balls(scene_factory, tmp_path):
+    """(engine, ball centres, free camera, patch) for the editor's way on the balls: ball 0 is the object, ball 1
+    its look-alike (same feature), ball 2 differs; the patch (image fractions) lies on ball 0 in the free camera."""
     from types import SimpleNamespace
 
-    import cv2
-
     from repaint_nerf.core.engine import Engine
-    from repaint_nerf.core.scene.cameras import Cameras, look_at
 
     eng = Engine("cpu")
     eng.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
@@ -355,7 +351,19 @@ def test_the_overlay_shows_the_selected_ball_not_its_look_alike(scene_factory, t
     free = _free_camera()
     ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
     cy, cx = np.median(ys) / 48, np.median(xs) / 48
-    picked = eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05))
+    return eng, centers, free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05)
+
+
+def test_the_overlay_shows_the_selected_ball_not_its_look_alike(scene_factory, tmp_path):
+    """The editor's mask overlay thresholds Engine's 'region' map (Selection.region_map): in the patch's free
+    view and after the camera moves to a training view, `region > t` holds the patch's ball and none of the
+    look-alike ball of its feature that `similarity > t` also covers; a view that sees no anchor has none."""
+    import cv2
+
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+
+    eng, centers, free, patch = _editor_on_balls(scene_factory, tmp_path)
+    picked = eng.select(free, patch)
     t = picked.auto_threshold
     train = eng.scene.field_cameras("train").to("cpu")
     apart = []  # training views that see both balls apart (where they touch at 24 px no depth edge parts them)
@@ -445,19 +453,8 @@ def test_views_outside_the_training_set_take_a_training_patch_only_through_its_s
 def test_the_editors_patch_shapes_every_training_views_mask(scene_factory, tmp_path):
     """Engine.select in a free camera keeps the patch's surface points, and the masks it then applies to the
     training views (what the repaint reads) leave out the look-alike ball."""
-    from types import SimpleNamespace
-
-    from repaint_nerf.core.engine import Engine
-
-    eng = Engine("cpu")
-    eng.load(scene_factory("demo", size=24, views=6, test_views=2), workspace=tmp_path / "ws")
-    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
-    eng.field, eng.grid = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]]), None
-    eng.field.cfg = SimpleNamespace(feature_dim=3)
-    free = _free_camera()
-    ys, xs = np.nonzero(_ball_gt(free, 0, centers[0], 0.22).numpy())
-    cy, cx = np.median(ys) / 48, np.median(xs) / 48
-    own = eng.select(free, (cx - 0.05, cy - 0.05, cx + 0.05, cy + 0.05)).auto_threshold
+    eng, centers, free, patch = _editor_on_balls(scene_factory, tmp_path)
+    own = eng.select(free, patch).auto_threshold
     pts = eng.selection.anchor_points()
     assert eng.selection.cleanup and len(pts)
     assert np.abs(np.linalg.norm(pts - np.array(centers[0]), axis=1) - 0.22).max() < 0.05
