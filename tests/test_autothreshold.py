@@ -682,6 +682,9 @@ def test_walled_top_is_none_without_a_plateau_from_the_lowest_threshold():
     # flat (within the +-0.02 window) to 0.47, less WALL_MARGIN steps
     assert walled_top(GRID, np.where(GRID < 0.5, 800, 300), 100) == pytest.approx(0.45)
     assert walled_top(GRID, np.maximum(8000 * np.exp(-10 * GRID), 300), 100) is None  # shrinking from 0.02
+    # flat at first, but the region is most of the view's surface: nothing walls it in
+    assert walled_top(GRID, np.where(GRID < 0.5, 800, 300), 100, room=1000) is None
+    assert walled_top(GRID, np.where(GRID < 0.5, 800, 300), 100, room=4000) == pytest.approx(0.45)
 
 
 def test_the_views_vote_only_where_their_region_leaks():
@@ -793,3 +796,23 @@ def test_region_levels_hold_every_thresholds_region():
     for t in (0.3, 0.5, 0.75):
         assert (region > t)[left].mean() > 0.95 and not (region > t)[right].any()
     assert not (region > 0.85).any()
+
+
+def test_a_region_that_fills_the_view_is_not_walled_in():
+    """No depth edge (the rough depth of a real capture): the region grown at the lowest thresholds is the whole
+    view, flat until the background's similarities (0.2-0.45, a slow gradient) start to fall away, with no jump,
+    and the object's (0.5-0.95) fall away slowly too. That flat start is not a wall, so the view's split is the
+    floor, not the flat start's top (the fox capture: 0.26, the overlay on 70% of the view)."""
+    from repaint_nerf.core.select.autothreshold import walled_top
+
+    h = w = 96
+    yy, xx = np.mgrid[:h, :w]
+    sim = (0.2 + 0.25 * xx / (w - 1)).astype(np.float32)
+    obj = _disc(h, w, 48, 74, 22)
+    sim[obj] = (0.5 + 0.45 * yy / (h - 1))[obj]  # the object's similarities spread too: no long plateau of its own
+    seeds = _disc(h, w, 60, 74, 5)
+    a = auto_threshold(sim, seeds)
+    top = walled_top(a.thresholds, a.areas, int(seeds.sum()))
+    assert a.jump is None and top is not None and top < 0.2  # the old reading: a wall, and the floor stopped there
+    assert 0.45 < a.value < 0.6, a.value
+    assert _iou(grow(sim > a.value, seeds), obj) > 0.9 > 0.5 > _iou(grow(sim > top, seeds), obj)
