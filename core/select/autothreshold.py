@@ -7,7 +7,8 @@ as t falls. Its area stays nearly flat while t sweeps across the gap between the
 surrounds it (a plateau), and jumps where the region leaks into a neighbour or the surface the object
 rests on. The threshold is the middle of a plateau right above the largest jump when there is one
 (the area at least doubles within `JUMP_WINDOW`): the longest of the plateaus there that no step of
-`PART_STEP` separates from the jump (`choose_threshold`); else the middle of the longest plateau.
+`PART_STEP` separates from the jump (`choose_threshold`); else the middle of the longest plateau. It moves down
+to a lower plateau whose region rejoins pixels above it that a band of lower similarity cut off (`whole_object`).
 The barrier is the one the masks will have: depth edges only where the selection's geometry uses them and
 the view's depth is smooth enough to show them (`geometry.rough_depth`, as `geometry.fit_parts` decides).
 """
