@@ -302,7 +302,9 @@ class Engine:
         if mode != "sub":  # saved with the selection, and the editor's slider starts at it
             auto = self.selection.anchor_patch(similarity, patch, view.depth, view.opacity, view.camera,
                                                view.expected_depth)
-        return PatchSelected(similarity, auto, self._region(similarity, view))
+        # a first patch's region is its threshold's (no second pass); an added or subtracted one joins the others'
+        region = self.selection.patch_region if mode == "new" else self._region(similarity, view)
+        return PatchSelected(similarity, auto, region)
 
     def refine_threshold(self, own: float, cancel: Callable[[], bool] | None = None) -> float | None:
         """The newest free-view patch's automatic threshold (`own`, what `select` returned) once the training

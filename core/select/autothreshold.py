@@ -42,12 +42,14 @@ MIN_REGION = 1.5  # a plateau is a region of at least 1.5x the patch's pixels: a
 
 @dataclass(frozen=True)
 class AutoThreshold:
-    """The chosen threshold and the evidence: the grid, the grown areas, the jump (or None)."""
+    """The chosen threshold and the evidence: the grid, the grown areas, the jump (or None), and the map the
+    areas were counted from (`region_levels`, at the size the curve was evaluated; None where not kept)."""
 
     value: float
     thresholds: np.ndarray
     areas: np.ndarray
     jump: float | None
+    levels: np.ndarray | None = None
 
 
 def region_areas_reference(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None = None,
@@ -106,8 +108,12 @@ def region_areas(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray 
                  thresholds: np.ndarray = GRID) -> np.ndarray:
     """`region_areas_reference`'s areas (thresholds ascending), counted from `region_levels`. On the editor's patch
     path this is most of the automatic threshold's cost."""
-    levels = region_levels(similarity, seeds, barrier, thresholds)
-    counts = np.bincount(levels[levels >= 0].ravel(), minlength=len(thresholds))
+    return _level_areas(region_levels(similarity, seeds, barrier, thresholds), len(thresholds))
+
+
+def _level_areas(levels: np.ndarray, n: int) -> np.ndarray:
+    """The region's area at each of `n` thresholds from its `region_levels` map."""
+    counts = np.bincount(levels[levels >= 0].ravel(), minlength=n)
     return counts[::-1].cumsum()[::-1].astype(np.int64)
 
 
@@ -183,7 +189,8 @@ def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarra
     teacher a thin pole walled in by its edges took 0.48 from the curve alone (test IoU 0.38), 0.64 with the
     floor (0.93)."""
     seeds = np.asarray(seeds, bool)
-    areas = region_areas(similarity, seeds, barrier, thresholds)
+    levels = region_levels(similarity, seeds, barrier, thresholds)
+    areas = _level_areas(levels, len(thresholds))
     free = seeds if barrier is None else seeds & ~np.asarray(barrier, bool)  # the pixels the region grows from
     value, jump = choose_threshold(thresholds, areas, int(free.sum()))
     value = whole_object(similarity, seeds, barrier, thresholds, areas, value, jump, int(free.sum()))
@@ -194,7 +201,7 @@ def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarra
             room &= ~np.asarray(barrier, bool)
         top = walled_top(thresholds, areas, int(free.sum()), int(room.sum()))
         value = max(value, floor if top is None else min(floor, top))
-    return AutoThreshold(value, np.asarray(thresholds), areas, jump)
+    return AutoThreshold(value, np.asarray(thresholds), areas, jump, levels)
 
 
 def whole_object(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None, thresholds: np.ndarray,
@@ -306,7 +313,13 @@ def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, m
     if step > 1:  # scattered seed pixels (projected anchors) must survive the nearest-pixel downsampling
         seeds = cv2.dilate(seeds.astype(np.uint8), np.ones((step, step), np.uint8)) > 0
     s, small, barrier, _ = _query_maps(full, seeds, depth, opacity, max_side, edges)
-    levels = region_levels(s, small, barrier)
+    return level_similarity(full, region_levels(s, small, barrier))
+
+
+def level_similarity(similarity: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """`region_similarity`'s map from a `region_levels` map over `GRID` (at most the similarity's size): the
+    patch's own view reuses its automatic threshold's (`AutoThreshold.levels`)."""
+    full = np.asarray(similarity, np.float32)
     top = np.append(GRID[1:], 1.0 + 1e-6) - 1e-6  # a pixel of level k leaves the region above GRID[k]
     reach = np.where(levels >= 0, top[np.maximum(levels, 0)], -1.0).astype(np.float32)
     if reach.shape != full.shape:

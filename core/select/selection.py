@@ -35,6 +35,8 @@ class Selection:
     geometry: str = DEFAULT_GEOMETRY  # the masks' geometry parts: 'basic' or 'full' (core.select.geometry.parts_named)
     auto_threshold: float | None = None  # the automatic threshold of the queries (core.select.autothreshold)
     anchors: list[list[float]] = field(default_factory=list)  # field-space surface points of free-view patches
+    # the overlay's map (region_map) of the view the newest positive patch was drawn in; not saved
+    patch_region: np.ndarray | None = field(default=None, repr=False, compare=False)
     teacher: str = ""
     created: float = field(default_factory=time.time)
 
@@ -66,11 +68,16 @@ class Selection:
         the maps' size): its automatic threshold in that view (kept as `auto_threshold`; its region stops at the
         edges of `edge_depth`, else of `depth`: masks.ViewMaps) and its surface points on `depth` at that
         threshold (kept as anchors). Returns the threshold."""
-        from repaint_nerf.core.select.autothreshold import patch_auto_threshold, patch_pixels, uses_edges
+        from repaint_nerf.core.select.autothreshold import (level_similarity, patch_auto_threshold_px, patch_pixels,
+                                                            uses_edges)
         from repaint_nerf.core.select.geometry import patch_anchors
 
         edges_on = depth if edge_depth is None else edge_depth
-        auto = self.auto_threshold = patch_auto_threshold(similarity, patch, edges_on, opacity, edges=uses_edges(self))
+        sim = np.asarray(similarity, np.float32)
+        picked = patch_auto_threshold_px(sim, patch_pixels(sim.shape, patch), edges_on, opacity,
+                                         edges=uses_edges(self))
+        auto = self.auto_threshold = picked.value
+        self.patch_region = level_similarity(sim, picked.levels)  # grown from the patch, as its threshold was
         self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
                                        auto))
         return auto
