@@ -193,7 +193,7 @@ def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarra
     areas = _level_areas(levels, len(thresholds))
     free = seeds if barrier is None else seeds & ~np.asarray(barrier, bool)  # the pixels the region grows from
     value, jump = choose_threshold(thresholds, areas, int(free.sum()))
-    value = whole_object(similarity, seeds, barrier, thresholds, areas, value, jump, int(free.sum()))
+    value = whole_object(similarity, levels, thresholds, areas, value, jump, int(free.sum()))
     if jump is None:
         floor = view_split(similarity, surface)
         room = np.ones(np.shape(seeds), bool) if surface is None else np.asarray(surface, bool)
@@ -204,32 +204,30 @@ def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarra
     return AutoThreshold(value, np.asarray(thresholds), areas, jump, levels)
 
 
-def whole_object(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarray | None, thresholds: np.ndarray,
-                 areas: np.ndarray, value: float, jump: float | None, seed_area: int = 1) -> float:
+def whole_object(similarity: np.ndarray, levels: np.ndarray, thresholds: np.ndarray, areas: np.ndarray,
+                 value: float, jump: float | None, seed_area: int = 1) -> float:
     """`value` (from `choose_threshold`) lowered, plateau by plateau downwards (above the leak, if any), to each
     whose region joins pixels above the current threshold that the current region lost: at least `CUT_FRACTION`
     of it. Those pixels are as like the patch as the kept ones, so a band of lower similarity cut one object
     (a printed can's label between its red ends: under the blended teacher the area curve stepped 1.8x at 0.4,
     a step that a can and a neighbour of another colour also make, and the longer, upper plateau kept one end,
-    IoU 0.52 against 0.95 at 0.3); a neighbour that joins lower holds none of them."""
-    from repaint_nerf.core.select.geometry import grow
-
+    IoU 0.52 against 0.95 at 0.3); a neighbour that joins lower holds none of them. The regions are read from
+    the curve's own `region_levels` map (`levels`): the region at thresholds[k] is `levels >= k`."""
     t = np.asarray(thresholds)
     runs = _plateaus(np.maximum(np.asarray(areas, np.float64), 1.0), seed_area)
     floor = -1 if jump is None else int(np.argmin(np.abs(t - jump)))
     s = np.asarray(similarity, np.float32)
-    barrier = None if barrier is None else np.asarray(barrier, bool)
-    kept = lost = None
+    lost = None
     for r in sorted(runs, key=lambda r: -r[0]):
         if r[0] <= floor:
             break
         if t[r[1] - 1] >= value:
             continue
-        if kept is None:
-            kept = grow(s > value, seeds, barrier)
+        if lost is None:
+            kept = levels >= int(np.argmin(np.abs(t - value)))  # value is a grid threshold
             lost = (s > value) & ~kept
-        if np.count_nonzero(lost & grow(s > t[r[1] - 1], seeds, barrier)) >= CUT_FRACTION * max(kept.sum(), 1):
-            value, kept = float(t[(r[0] + r[1] - 1) // 2]), None
+        if np.count_nonzero(lost & (levels >= r[1] - 1)) >= CUT_FRACTION * max(int(kept.sum()), 1):
+            value, lost = float(t[(r[0] + r[1] - 1) // 2]), None
     return value
 
 
