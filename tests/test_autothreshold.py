@@ -701,6 +701,20 @@ def test_the_views_vote_only_where_their_region_leaks():
     assert views_threshold(0.42, []) == 0.42
 
 
+def test_a_training_view_patch_that_leaks_nowhere_takes_the_walled_views_median():
+    """walled_views_threshold: a training-view patch whose own view shows no leak takes the median of its value
+    and every other view's where none of them leaks either; one leaking view leaves its own value standing."""
+    from repaint_nerf.core.select.autothreshold import AutoThreshold, walled_views_threshold
+
+    def view(value, jump):
+        return AutoThreshold(value, np.zeros(0), np.zeros(0), jump)
+
+    walled = [view(0.48, None), view(0.45, None), view(0.47, None), view(0.62, None)]
+    assert walled_views_threshold(0.64, walled) == pytest.approx(0.48)
+    assert walled_views_threshold(0.64, walled + [view(0.96, 0.3)]) == 0.64
+    assert walled_views_threshold(0.64, []) == 0.64
+
+
 def test_anchor_views_are_the_views_that_frame_the_points_best():
     """geometry.anchor_views: views with the points behind or outside the image are left out; of the rest, the
     ones that see them nearest their centre come first, at most `limit`."""

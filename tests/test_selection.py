@@ -222,13 +222,14 @@ def test_masks_round_trip(tmp_path):
 
 # -- 3D clean-up on an analytic field -------------------------------------------------------------
 class Balls(nn.Module):
-    """Opaque balls with a constant unit feature each (a stand-in for a trained field)."""
+    """Opaque balls with a constant unit feature each (a stand-in for a trained field); `radius`: one for all, or
+    one per ball."""
 
     def __init__(self, centers, radius, features):
         super().__init__()
         self.register_buffer("c", torch.tensor(centers, dtype=torch.float32))
         self.register_buffer("f", torch.tensor(features, dtype=torch.float32))
-        self.r = radius
+        self.register_buffer("r", torch.as_tensor(radius, dtype=torch.float32))
         self.bound = 1.0
 
     def _inside(self, x):
@@ -416,6 +417,46 @@ def test_a_free_view_patch_seeds_the_training_views(tmp_path):
     both = [g | _ball_gt(cams, i, centers[1], 0.22).numpy() for i, g in enumerate(gts)]
     assert _iou(unseeded, both) > 0.85 and _iou(unseeded, gts) < 0.75  # no seed: the look-alike stays
     assert _iou(seeded, gts) > 0.85
+
+
+def test_a_training_view_patch_walled_in_everywhere_takes_the_views_median():
+    """selection_auto_threshold: a patch drawn in a training view from above, which sees only the upper ball of a
+    two-colour object (walled in at every threshold: no leak, so its value is its view's floor, split by a
+    look-alike of the upper colour), is refined by the training views that see its surface points: none of them
+    leaks either, so every one votes (autothreshold.walled_views_threshold) and their median, lower, stands."""
+    from repaint_nerf.core.render.renderer import RenderOptions
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.select.autothreshold import (patch_auto_threshold_px, patch_pixels,
+                                                        selection_auto_threshold, uses_edges)
+    from repaint_nerf.core.select.geometry import anchor_views, patch_anchors
+
+    a, b, c = [1.0, 0.0, 0.0], [0.55, math.sqrt(1 - 0.55 ** 2), 0.0], [0.8, 0.0, 0.6]
+    centers = [(0.0, 0.0, 0.2), (0.0, 0.0, -0.2), (0.0, 0.9, 0.0)]  # the object's two parts, a look-alike of a
+    field = Balls(centers, [0.3, 0.25, 0.25], [a, b, c])
+    size = 48
+    f = 0.5 * size / math.tan(0.45)
+    poses = [look_at((0.3, 0.0, 3.0), (0, 0, 0))] + [look_at((2.6 * math.cos(t), 2.6 * math.sin(t), 1.2), (0, 0, 0))
+                                                      for t in np.linspace(0, 2 * math.pi, 6, endpoint=False) + 0.3]
+    cams = Cameras.create(np.stack(poses), f, f, size / 2, size / 2, size, size)
+    lower = _ball_gt(cams, 0, centers[1], 0.25).numpy() & ~_ball_gt(cams, 0, centers[0], 0.3).numpy()
+    assert not lower.any()  # the patch's view does not see the object's lower part
+    cache = ViewCache(field, None, cams, render_opts=RenderOptions(max_samples=96))
+    ys, xs = np.nonzero(_ball_gt(cams, 0, centers[0], 0.3).numpy())
+    cx, cy = int(np.median(xs)), int(np.median(ys))
+    sel = Selection()
+    sel.add_patch(cache.get(0).feature, Patch(0, cx - 1, cy - 1, cx + 2, cy + 2))
+    m = cache.get(0)
+    sim = sel.similarity(m.feature).float().numpy()
+    px = patch_pixels(sim.shape, sel.patches[0])
+    own = patch_auto_threshold_px(sim, px, m.edge_depth(), m.opacity, edges=uses_edges(sel))
+    assert own.jump is None and own.value > 0.7  # its view's floor splits the object's colour from the look-alike
+    points = patch_anchors(px, sim, m.depth.numpy(), m.opacity.numpy(), cams[0:1], own.value)
+    voters = [i for i in anchor_views(points, cams) if i != 0]
+    others = sel._voters(points, [cache.get(i) for i in voters], cams[torch.tensor(voters)])
+    assert len(others) >= 4 and all(o.jump is None for o in others)
+    auto = selection_auto_threshold(sel, cache, 0)
+    assert auto == pytest.approx(float(np.median([own.value] + [o.value for o in others])))
+    assert auto < own.value - 0.2
 
 
 def test_views_outside_the_training_set_take_a_training_patch_only_through_its_surface_points(tmp_path):

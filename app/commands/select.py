@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
         feat = cache.get(args.view).feature
         for p in patches:
             sel.add_patch(feat, p)
-        sel.auto_threshold = selection_auto_threshold(sel, cache.get(args.view))
+        sel.auto_threshold = selection_auto_threshold(sel, cache, args.view)
         if threshold is None:
             sel.threshold = sel.auto_threshold
     threshold = sel.threshold

@@ -96,18 +96,19 @@ def select_object(trainer, scene, gt_train: list[np.ndarray], test_split: str):
     from repaint_nerf.core.bench.teacher import place_patch
     from repaint_nerf.core.select.autothreshold import patch_pixels, selection_auto_threshold
     from repaint_nerf.core.select.geometry import patch_anchors
-    from repaint_nerf.core.select.masks import masks_for_views, render_view_maps
+    from repaint_nerf.core.select.masks import ViewCache, masks_for_views
     from repaint_nerf.core.select.query import Patch
     from repaint_nerf.core.select.selection import Selection
 
     view, (y0, y1, x0, x1) = place_patch(gt_train)
     patch = Patch(view, x0, y0, x1, y1)
     cams = scene.field_cameras("train").to(trainer.device)
-    maps = render_view_maps(trainer.field, trainer.grid, cams, view)
+    cache = ViewCache(trainer.field, trainer.grid, cams)
+    maps = cache.get(view)
     sel = Selection()
     sel.add_patch(maps.feature, patch)
-    sel.threshold = sel.auto_threshold = selection_auto_threshold(sel, maps)
-    masks = masks_for_views(trainer.field, trainer.grid, cams, sel, images=scene.train.images)
+    sel.threshold = sel.auto_threshold = selection_auto_threshold(sel, cache, view)
+    masks = masks_for_views(trainer.field, trainer.grid, cams, sel, cache=cache, images=scene.train.images)
     sim = sel.similarity(maps.feature).float().cpu().numpy()
     sel.add_anchors(patch_anchors(patch_pixels(sim.shape, patch), sim, maps.depth.numpy(), maps.opacity.numpy(),
                                   cams.to("cpu")[view:view + 1], sel.threshold))

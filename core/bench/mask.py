@@ -146,7 +146,7 @@ class Evaluator:
         """The automatic threshold of the patch, from its own view (as `select` chooses it)."""
         from repaint_nerf.core.select.autothreshold import selection_auto_threshold
 
-        return selection_auto_threshold(self.selection(patch), self.train_maps(patch.view))
+        return selection_auto_threshold(self.selection(patch), self.train_cache, patch.view)
 
     def _with_training_views(self, test_views: list[int]) -> tuple[list, object, list | None]:
         """(maps, cameras, photos or None) of test views `test_views` followed by every training view: the views

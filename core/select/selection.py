@@ -87,15 +87,39 @@ class Selection:
         views that see its anchors (`maps`: their ViewMaps; `cameras`: those views at the maps' size, e.g. the
         ones `geometry.anchor_views` chose): each grows its region from the anchors it sees, and the leaking ones
         vote (`autothreshold.views_threshold`). Kept as `auto_threshold`; returned."""
-        from repaint_nerf.core.select.autothreshold import patch_auto_threshold_px, uses_edges, views_threshold
+        from repaint_nerf.core.select.autothreshold import views_threshold
+
+        self.auto_threshold = views_threshold(own, self._voters(self.anchor_points(), maps, cameras))
+        return self.auto_threshold
+
+    def training_views_threshold(self, own: float, seeds: np.ndarray, cache, view: int) -> float:
+        """The automatic threshold of patches drawn in training view `view` (pixels `seeds`, bool (H, W) of that
+        view's maps in `cache`, a masks.ViewCache) whose own region shows no leak (`own`: that view's value): the
+        training views that see the patches' surface points at `own` (up to `geometry.VOTE_VIEWS`) grow their
+        regions from them and vote where none of them leaks (`autothreshold.walled_views_threshold`)."""
+        from repaint_nerf.core.select.autothreshold import walled_views_threshold
+        from repaint_nerf.core.select.geometry import anchor_views, patch_anchors
+
+        maps = cache.get(view)
+        cams = cache.cameras.to("cpu")
+        sim = self.similarity(maps.feature).float().numpy()
+        points = patch_anchors(seeds, sim, maps.depth.numpy(), maps.opacity.numpy(), cams[view:view + 1], own)
+        voters = [i for i in anchor_views(points, cams) if i != view]
+        if not voters:
+            return float(own)
+        others = self._voters(points, [cache.get(i) for i in voters], cams[torch.tensor(voters, dtype=torch.long)])
+        return walled_views_threshold(own, others)
+
+    def _voters(self, points: np.ndarray, maps: list, cameras) -> list:
+        """The AutoThreshold of each view of `maps` (ViewMaps; `cameras` at their size) that sees one of `points`,
+        its region grown from the pixels where it sees them."""
+        from repaint_nerf.core.select.autothreshold import patch_auto_threshold_px, uses_edges
         from repaint_nerf.core.select.geometry import anchor_seeds
 
-        others = [patch_auto_threshold_px(self.similarity(maps[i].feature).float().numpy(), seeds,
-                                          maps[i].edge_depth().numpy(), maps[i].opacity.numpy(),
-                                          edges=uses_edges(self))
-                  for i, seeds in anchor_seeds(self.anchor_points(), [m.depth.numpy() for m in maps], cameras)]
-        self.auto_threshold = views_threshold(own, others)
-        return self.auto_threshold
+        return [patch_auto_threshold_px(self.similarity(maps[i].feature).float().numpy(), seeds,
+                                        maps[i].edge_depth().numpy(), maps[i].opacity.numpy(),
+                                        edges=uses_edges(self))
+                for i, seeds in anchor_seeds(points, [m.depth.numpy() for m in maps], cameras)]
 
     def region_map(self, similarity: np.ndarray, depth: np.ndarray, opacity: np.ndarray, camera,
                    edge_depth: np.ndarray | None = None) -> np.ndarray | None:
