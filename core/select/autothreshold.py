@@ -264,8 +264,9 @@ def walled_views_threshold(own: float, others: list[AutoThreshold]) -> float:
     view's floor or walled top, one view's guess) once the training views that see its surface points have grown
     their own regions from them (`others`): where none of those leaks either, the median of `own` and all of theirs
     (a view that sees one colour of a printed can: flat from 0.02 to 0.88, its floor 0.64 cut the label in the
-    other views; theirs were 0.45-0.64); else `own` stands (a leaking view's vote, as `views_threshold` counts it,
-    moved 7 of 19 recorded decisions by -0.005 to +0.009 IoU, and a single one at 0.96 moved a tin's 0.60 to 0.78)."""
+    other views; theirs were 0.45-0.64, the median 0.48: IoU 0.571 -> 0.960); else `own` stands (letting the leaking
+    views vote, as `views_threshold` counts them, cost 0.40 IoU on one of 24 recorded fields, the built-in teacher's
+    can: 0.46 -> 0.66)."""
     if any(o.jump is not None for o in others):
         return float(own)
     return float(np.median([float(own)] + [float(o.value) for o in others]))
