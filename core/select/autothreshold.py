@@ -388,7 +388,7 @@ def selection_auto_threshold(selection, cache, view: int) -> float:
     own = patch_auto_threshold_px(sim, seeds, maps.edge_depth(), maps.opacity, edges=uses_edges(selection))
     if own.jump is not None:
         return own.value
-    return selection.training_views_threshold(own.value, seeds, cache, view)
+    return selection.training_views_threshold(own.value, sim, seeds, cache, view)
 
 
 def uses_edges(selection) -> bool:

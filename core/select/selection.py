@@ -74,12 +74,11 @@ class Selection:
 
         edges_on = depth if edge_depth is None else edge_depth
         sim = np.asarray(similarity, np.float32)
-        picked = patch_auto_threshold_px(sim, patch_pixels(sim.shape, patch), edges_on, opacity,
-                                         edges=uses_edges(self))
+        px = patch_pixels(sim.shape, patch)
+        picked = patch_auto_threshold_px(sim, px, edges_on, opacity, edges=uses_edges(self))
         auto = self.auto_threshold = picked.value
         self.patch_region = level_similarity(sim, picked.levels)  # grown from the patch, as its threshold was
-        self.add_anchors(patch_anchors(patch_pixels(np.shape(similarity), patch), similarity, depth, opacity, camera,
-                                       auto))
+        self.add_anchors(patch_anchors(px, similarity, depth, opacity, camera, auto))
         return auto
 
     def refine_auto_threshold(self, own: float, maps: list, cameras) -> float:
@@ -92,9 +91,11 @@ class Selection:
         self.auto_threshold = views_threshold(own, self._voters(self.anchor_points(), maps, cameras))
         return self.auto_threshold
 
-    def training_views_threshold(self, own: float, seeds: np.ndarray, cache, view: int) -> float:
+    def training_views_threshold(self, own: float, similarity: np.ndarray, seeds: np.ndarray, cache, view: int
+                                 ) -> float:
         """The automatic threshold of patches drawn in training view `view` (pixels `seeds`, bool (H, W) of that
-        view's maps in `cache`, a masks.ViewCache) whose own region shows no leak (`own`: that view's value): the
+        view's maps in `cache`, a masks.ViewCache, whose `similarity` to the selection the caller has) whose own
+        region shows no leak (`own`: that view's value): the
         training views that see the patches' surface points at `own` (up to `geometry.VOTE_VIEWS`) grow their
         regions from them and vote where none of them leaks (`autothreshold.walled_views_threshold`)."""
         from repaint_nerf.core.select.autothreshold import walled_views_threshold
@@ -102,8 +103,7 @@ class Selection:
 
         maps = cache.get(view)
         cams = cache.cameras.to("cpu")
-        sim = self.similarity(maps.feature).float().numpy()
-        points = patch_anchors(seeds, sim, maps.depth.numpy(), maps.opacity.numpy(), cams[view:view + 1], own)
+        points = patch_anchors(seeds, similarity, maps.depth.numpy(), maps.opacity.numpy(), cams[view:view + 1], own)
         voters = [i for i in anchor_views(points, cams) if i != view]
         if not voters:
             return float(own)
