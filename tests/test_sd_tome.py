@@ -133,3 +133,17 @@ def test_the_config_and_flag_reach_the_unet(sd):
     procs = [m.processor for n, m in guidance.sd.unet.named_modules() if n.endswith("attn1")]
     merged = [p for p in procs if isinstance(p, TokenMergingProcessor)]
     assert len(merged) == 3 and all(p.ratio == 0.25 for p in merged)
+
+
+def test_merging_wraps_the_sliced_attention_that_cuda_uses(sd):
+    """On CUDA the UNet runs diffusers' SlicedAttnProcessor, whose call takes no `temb`: merging over it runs and
+    still merges (it raised TypeError on the first CUDA run)."""
+    from diffusers.models.attention_processor import SlicedAttnProcessor
+
+    sd.unet.set_attn_processor(SlicedAttnProcessor(slice_size=1))
+    lat = torch.randn(2, 4, 8, 8, generator=torch.Generator().manual_seed(5))
+    t, emb = torch.tensor([400, 400]), sd.encode_text(["", "a rose"])
+    plain = sd.predict_noise(lat, t, emb)
+    assert set_token_merging(sd.unet, 0.5, min_tokens=0) == 3
+    merged = sd.predict_noise(lat, t, emb)
+    assert merged.shape == plain.shape and torch.isfinite(merged).all() and not torch.equal(merged, plain)

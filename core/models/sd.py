@@ -109,7 +109,8 @@ class StableDiffusion:
             self.unet.to(self.device)
         try:
             dt = self.unet_dtype
-            return self.unet(latents.to(dt), t, encoder_hidden_states=embeddings.to(dt)).sample
+            return self.unet(latents.to(self.device, dt), t.to(self.device),
+                             encoder_hidden_states=embeddings.to(self.device, dt)).sample
         finally:
             if self.offload_unet:
                 self.unet.to("cpu")

@@ -77,13 +77,15 @@ class TokenMergingProcessor:
 
     def __call__(self, attn, hidden_states: Tensor, encoder_hidden_states: Tensor | None = None,
                  attention_mask: Tensor | None = None, temb: Tensor | None = None, *args, **kwargs) -> Tensor:
+        if temb is not None:  # only some processors take it (diffusers' SlicedAttnProcessor, used on CUDA, does not)
+            kwargs["temb"] = temb
         n = hidden_states.shape[1] if hidden_states.ndim == 3 else 0
         side = math.isqrt(n)
         if (encoder_hidden_states is not None or attention_mask is not None or side * side != n or side < 2
                 or n < self.min_tokens or getattr(attn, "residual_connection", False)):
-            return self.inner(attn, hidden_states, encoder_hidden_states, attention_mask, temb, *args, **kwargs)
+            return self.inner(attn, hidden_states, encoder_hidden_states, attention_mask, *args, **kwargs)
         merge, unmerge = bipartite_merge(hidden_states, side, side, int(n * self.ratio))
-        return unmerge(self.inner(attn, merge(hidden_states), None, None, temb, *args, **kwargs))
+        return unmerge(self.inner(attn, merge(hidden_states), None, None, *args, **kwargs))
 
 
 def highest_resolution_self_attention(unet: torch.nn.Module) -> dict[str, torch.nn.Module]:

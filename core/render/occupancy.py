@@ -81,7 +81,7 @@ class OccupancyGrid:
         e = self.cascade_extent(c)
         r = self.resolution
         ijk = ((x + e) * (r / (2.0 * e))).long().clamp_(0, r - 1)  # truncation == floor after the clamp
-        return ijk @ torch.tensor([r * r, r, 1], device=x.device)
+        return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]  # not a matmul: CUDA has no integer matmul
 
     def occupied_bbox(self) -> tuple[Tensor, Tensor]:
         """Axis-aligned box (lo, hi) around all occupied cells (cell bounds); a point when nothing is occupied."""
