@@ -595,6 +595,9 @@ def test_text_query_threshold_splits_two_modes_and_ignores_empty_space():
     assert 0.45 < t < 0.7
     assert all(((s > t) & m).sum() == 64 for s, m in zip(sims, surf))
     assert text_auto_threshold([np.full((8, 8), 0.7, np.float32)]) == FALLBACK
+    # a barely trained field: every pixel within a few float32 steps of 1 (numpy's float32 bins raised here)
+    near_one = (1.0 - rng.integers(0, 40, (16, 16)) * np.float32(6e-8)).astype(np.float32)
+    assert 0.99 <= text_auto_threshold([near_one]) <= 1.0
 
 
 def test_attach_gives_border_pixels_to_the_surface_whose_depth_they_share():

@@ -408,7 +408,7 @@ def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarra
         surfaces = [np.ones(np.shape(s), bool) for s in similarities]
     v = np.concatenate([np.asarray(s, np.float32)[np.asarray(m, bool)] for s, m in zip(similarities, surfaces)]
                        + [np.zeros(0, np.float32)])
-    v = v[np.isfinite(v)]
+    v = v[np.isfinite(v)].astype(np.float64)  # float32 bins of a narrow range near 1 are not distinct (numpy raises)
     if v.size < 2 or float(v.max() - v.min()) < 1e-6:
         return FALLBACK
     return float(np.clip(threshold_otsu(v), 0.0, 1.0))
