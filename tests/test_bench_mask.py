@@ -57,7 +57,7 @@ def test_bench_mask_seeds_run_each_scene_per_seed_and_report_the_worst(tmp_path)
     ious = [r["final"]["iou"] for r in d["presets"].values()]
     assert d["final"]["iou"] == min(ious) and abs(d["final"]["mean_iou"] - sum(ious) / 2) < 1e-9
     headline = dict((src, fn) for src, _, fn in ROWS)["mask"](d)[0]
-    assert "2 runs: 1 preset(s) x 2 seeds" in headline
+    assert "2 runs: 1 preset x 2 seeds" in headline
 
 
 def test_bench_mask_seeds_must_be_distinct_integers(tmp_path, capsys):

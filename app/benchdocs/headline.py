@@ -34,7 +34,7 @@ def _mask(d: dict) -> tuple[str, str]:
         best = [p["final"]["best_iou"] for p in d["presets"].values()]
         seeds = d.get("seeds") or [0]
         runs = f"{len(best)} presets" if len(seeds) == 1 else \
-            f"{len(best)} runs: {len(best) // len(seeds)} preset(s) x {len(seeds)} seeds"
+            f"{len(best)} runs: {len(best) // len(seeds)} preset{'s' if len(best) > len(seeds) else ''} x {len(seeds)} seeds"
         return (f"mean {f['mean_iou']:.3f}, worst {f['iou']:.3f} ({runs})",
                 f"fixed threshold 0.5: worst {f['min_iou_fixed']:.3f}; best threshold read from the ground truth: "
                 f"mean {sum(best) / len(best):.3f}")
