@@ -83,8 +83,8 @@ def test_sds_step_end_to_end(sd):
 def test_sds_classifier_free_guidance_and_weight(sd, monkeypatch):
     """grad = w(t) (eps_u + s (eps_c - eps_u) - eps), with [uncond, cond] embeddings and the model resolution."""
     g = SDSGuidance(sd, "a rose", negative_prompt="", guidance_scale=7.0, seed=1)
-    noise = torch.randn(1, 4, 8, 8)
-    eps_u, eps_c = torch.randn(1, 4, 8, 8), torch.randn(1, 4, 8, 8)
+    noise = torch.randn(1, 4, 8, 8).to(sd.device)
+    eps_u, eps_c = torch.randn(1, 4, 8, 8).to(sd.device), torch.randn(1, 4, 8, 8).to(sd.device)
     seen = {}
 
     def fake_unet(latents, t, emb):
@@ -210,8 +210,8 @@ def test_analytic_guidance_with_adan_converges_to_target():
 
 def test_clip_loss_differentiable_and_ignores_masked_pixels(clip_path):
     loss_fn = ClipBackgroundLoss("leaves", path=clip_path)
-    img = torch.nn.Parameter(torch.rand(1, 3, 40, 48))
-    mask = torch.zeros(1, 1, 40, 48)
+    img = torch.nn.Parameter(torch.rand(1, 3, 40, 48).to(loss_fn.clip.device))
+    mask = torch.zeros(1, 1, 40, 48, device=loss_fn.clip.device)
     mask[..., 10:30, 12:36] = 1.0
     loss = loss_fn.loss(img, mask)
     assert loss.dtype == torch.float32 and loss.dim() == 0 and torch.isfinite(loss) and -1 <= loss.item() <= 1

@@ -162,7 +162,7 @@ def test_render_with_occupancy_grid_at_extreme_density():
     from repaint_nerf.core.render.occupancy import OccupancyGrid
 
     field = SphereField(radius=0.5, sigma=1e8)
-    grid = OccupancyGrid(resolution=32, bound=1.0)
+    grid = OccupancyGrid(resolution=32, bound=1.0, device="cpu")  # the analytic field lives on the CPU
     with torch.no_grad():
         for i in range(0, 256, 16):
             grid.update(i, field.density)
@@ -544,8 +544,10 @@ def _repaint(scene, guidance, seed: int = 0):
     from repaint_nerf.core.field.field import NGPField
     from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
+    from repaint_nerf.core.device import get_device
+
     torch.manual_seed(0)
-    field = NGPField(_small_field_cfg())
+    field = NGPField(_small_field_cfg()).to(get_device())  # where the trainer's scene and grid are
     grid = OccupancyGrid(resolution=16, bound=1.0)
     masks = []
     for im in scene.train.images:

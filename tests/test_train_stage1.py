@@ -212,7 +212,7 @@ def test_random_background_targets(tiny_scene, standin_field):
     tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=4096))
     assert tr.has_alpha and tr.pixels.dtype == torch.uint8 and tr.pixels.shape[0] == 12 * 32 * 32
     b = tr.make_batch()
-    idx_img, u, v = tr.pixel_coords(torch.tensor([0, 31, 32, 32 * 32 + 5]))
+    idx_img, u, v = tr.pixel_coords(torch.tensor([0, 31, 32, 32 * 32 + 5], device=tr.device))
     assert idx_img.tolist() == [0, 0, 0, 1] and u.tolist() == [0, 31, 0, 5] and v.tolist() == [0, 0, 1, 0]
     bg = b["background"]
     assert bg.shape == (4096, 3) and bg.std() > 0.2  # a random colour per ray
@@ -311,7 +311,8 @@ def test_worst_rays_reopen_the_grid_in_front_of_their_surface(tiny_scene, standi
     rgb[:5] = 1.0 - rgb[:5]  # five rays far off
     rgb[5:20] = (rgb[5:20] + 0.1).clamp(max=1.0)  # fifteen a little off, three with no room to move
     rgb[5:20, 0] = torch.where(rgb[5:20, 0] > 0.95, rgb[5:20, 0] - 0.15, rgb[5:20, 0])
-    out = {"rgb": rgb, "opacity": torch.cat([torch.ones(3), torch.zeros(997)]), "depth": torch.full((1000,), 2.0)}
+    out = {"rgb": rgb, "opacity": torch.cat([torch.ones(3), torch.zeros(997)]).to(rgb.device),
+           "depth": torch.full((1000,), 2.0, device=rgb.device)}
     err = ((rgb - batch["rgb"]) ** 2).mean(-1)
     tr._reopen_worst(batch, out)
     (o, d, t), = calls
