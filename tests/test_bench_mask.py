@@ -42,8 +42,7 @@ def test_bench_mask_figures_and_the_editors_way():
 
 def test_bench_mask_seeds_run_each_scene_per_seed_and_report_the_worst(tmp_path):
     """`--seeds 0,1` runs the preset twice, its scene and training each following the seed; the JSON keeps
-    both runs and the summary's worst and mean, and the headline says how many runs it summarises. This
-    tiny field's similarity is almost flat: its threshold (numpy's float32 bins raised there) falls back cleanly."""
+    both runs and the summary's worst and mean, and the headline says how many runs it summarises."""
     import json
 
     from repaint_nerf.app.benchdocs.headline import ROWS

@@ -540,11 +540,10 @@ class _BadGuidance:
 
 
 def _repaint(scene, guidance, seed: int = 0):
-    from repaint_nerf.core.render.occupancy import OccupancyGrid
-    from repaint_nerf.core.field.field import NGPField
-    from repaint_nerf.core.repaint.trainer import RepaintTrainer
-
     from repaint_nerf.core.device import get_device
+    from repaint_nerf.core.field.field import NGPField
+    from repaint_nerf.core.render.occupancy import OccupancyGrid
+    from repaint_nerf.core.repaint.trainer import RepaintTrainer
 
     torch.manual_seed(0)
     field = NGPField(_small_field_cfg()).to(get_device())  # where the trainer's scene and grid are
