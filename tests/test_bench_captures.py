@@ -197,6 +197,8 @@ def test_nerfacto_dataset_holds_the_same_views_and_split_as_bench_recon(tmp_path
     assert len(meta["train_filenames"]) == 8 and all((tmp_path / "ns" / f["file_path"]).is_file()
                                                       for f in meta["frames"])
     assert meta["frames"][0]["fl_x"] == 14.0 and meta["frames"][0]["w"] == 16
+    first = export_scene(scene, tmp_path / "ns1", eval_views=1)  # bench recon --eval-views 1 scores the first
+    assert first["test_filenames"] == meta["test_filenames"][:1] and first["train_filenames"] == meta["train_filenames"]
     cmd = train_command(Path("/venv/bin"), tmp_path / "ns", tmp_path / "out", 25)
     assert "nerfacto" in cmd and "NoLPIPS" in cmd[2] and "cpu" in cmd and cmd[cmd.index("--data") + 1] == str(tmp_path / "ns")
 

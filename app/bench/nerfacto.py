@@ -17,6 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report-at", default=",".join(f"{t:g}" for t in REPORT_AT),
                    help="seconds at which to score the checkpoint saved last before them (comma-separated)")
     p.add_argument("--holdout-every", type=int, default=None, help="as bench recon (default 8)")
+    p.add_argument("--eval-views", type=int, default=None,
+                   help="score only the first N held-out views, as bench recon --eval-views N (ns-eval on a CPU "
+                        "takes minutes a view)")
     p.add_argument("--downscale", type=float, default=1.0)
     p.add_argument("--steps-per-save", type=int, default=25, help="checkpoint interval (the report times' grain)")
     p.add_argument("--ns-venv", default="/work/ns-venv", help="the virtual environment nerfstudio is installed in")
@@ -32,11 +35,13 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.seconds > 0:
         raise UserError(f"--seconds must be positive, got {args.seconds}")
+    if args.eval_views is not None and args.eval_views < 1:
+        raise UserError(f"--eval-views must be at least 1, got {args.eval_views}")
     tmp = None if args.work else tempfile.TemporaryDirectory(prefix="repaint-nerf-nerfacto-")
     work = Path(args.work) if args.work else Path(tmp.name)
     try:
         result = measure(Path(args.scene), args.seconds, Path(args.ns_venv), work, report_times(args.report_at),
-                         args.holdout_every, args.downscale, args.steps_per_save)
+                         args.holdout_every, args.downscale, args.steps_per_save, args.eval_views)
     finally:
         if tmp is not None:
             tmp.cleanup()

@@ -41,9 +41,11 @@ CAPTURES = (
             "not stated in that repository (the NeRF paper's LLFF 'fern' scene, Mildenhall et al.)",
             "its sparse/0/images.bin and database.db are absent from the snapshot; poses_bounds.npy is what opens it"),
     Capture("ethiopian_head", "vork/ethiopianHead", "a7061eb314f07ca6ab8415c3a01bb9bc5fd76b50", "",
-            "360 degrees (an object on a turntable-like stand, the room behind it)", "LLFF poses_bounds.npy (NeRD)",
+            "360 degrees of an object on a turntable (the room behind it stays put)", "LLFF poses_bounds.npy (NeRD)",
             "66 x 4000x4000 JPEG, with 66 masks in masks/", "CC BY-NC-SA 4.0 (the repository's LICENSE.md)",
-            "cameras circle about 340 degrees of azimuth"),
+            "the poses circle about 340 degrees of azimuth around the object, but the background is the same in "
+            "every photo: the masks it ships make the object a cut-out (without them 18 dB on its own training "
+            "views)"),
 )
 
 

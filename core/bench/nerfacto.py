@@ -54,9 +54,10 @@ def ns_command(ns_bin: Path, entry: str) -> list[str]:
     return [str(ns_bin / "python"), "-c", NO_LPIPS, entry]
 
 
-def export_scene(scene, out: Path) -> dict:
+def export_scene(scene, out: Path, eval_views: int | None = None) -> dict:
     """Write a loaded `Scene`'s train and test views as a nerfstudio dataset in `out` (PNG images as loaded,
-    pinhole intrinsics, OpenGL camera-to-world poses in world units, explicit split lists); returns the JSON."""
+    pinhole intrinsics, OpenGL camera-to-world poses in world units, explicit split lists); returns the JSON.
+    `eval_views` keeps only the first N test views, the ones `bench recon --eval-views N` scores."""
     import cv2
 
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -66,10 +67,11 @@ def export_scene(scene, out: Path) -> dict:
             continue
         data = scene.splits[split]
         cams = data.cameras
-        for i, img in enumerate(data.images):
+        images = data.images if split == "train" or eval_views is None else data.images[:eval_views]
+        for i, img in enumerate(images):
             name = f"images/{split}_{i:04d}.png"
-            rgb = np.asarray(img)[..., :3]
-            cv2.imwrite(str(out / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            px = np.asarray(img)  # RGBA stays RGBA: nerfacto then blends it on its background colour, as we do
+            cv2.imwrite(str(out / name), cv2.cvtColor(px, cv2.COLOR_RGBA2BGRA if px.shape[-1] == 4 else cv2.COLOR_RGB2BGR))
             frames.append({"file_path": name, "transform_matrix": cams.c2w[i].double().numpy().tolist(),
                            "fl_x": float(cams.fx[i]), "fl_y": float(cams.fy[i]), "cx": float(cams.cx[i]),
                            "cy": float(cams.cy[i]), "w": int(cams.width[i]), "h": int(cams.height[i])})
@@ -80,12 +82,15 @@ def export_scene(scene, out: Path) -> dict:
     return meta
 
 
-def train_command(ns_bin: Path, data: Path, out: Path, steps_per_save: int) -> list[str]:
-    """The `ns-train nerfacto` command line, reduced for CPU, keeping every checkpoint."""
+def train_command(ns_bin: Path, data: Path, out: Path, steps_per_save: int, alpha: bool = False) -> list[str]:
+    """The `ns-train nerfacto` command line, reduced for CPU, keeping every checkpoint. Images with alpha (a
+    masked capture) are blended on white in training and evaluation, nerfstudio's setting for cut-out objects
+    and the background this project evaluates them on."""
+    white = ("--pipeline.model.background-color", "white") if alpha else ()
     return [*ns_command(ns_bin, "nerfstudio.scripts.train:entrypoint"), "nerfacto", "--output-dir", str(out), "--experiment-name", "bench",
             "--timestamp", "run", "--max-num-iterations", "1000000", "--steps-per-save", str(steps_per_save),
             "--save-only-latest-checkpoint", "False", "--steps-per-eval-image", "1000000",
-            "--steps-per-eval-batch", "1000000", "--steps-per-eval-all-images", "1000000", *CPU_OPTIONS,
+            "--steps-per-eval-batch", "1000000", "--steps-per-eval-all-images", "1000000", *CPU_OPTIONS, *white,
             "nerfstudio-data", "--data", str(data), "--downscale-factor", "1"]
 
 
@@ -129,7 +134,8 @@ def evaluate_step(ns_bin: Path, run_dir: Path, step: int, out_json: Path) -> dic
 
 
 def measure(scene_path: Path, seconds: float, ns_venv: Path, work: Path, report_at=(60.0, 120.0, 300.0),
-            holdout_every: int | None = None, downscale: float = 1.0, steps_per_save: int = 25) -> dict:
+            holdout_every: int | None = None, downscale: float = 1.0, steps_per_save: int = 25,
+            eval_views: int | None = None) -> dict:
     """nerfacto on `scene_path` for `seconds` of wall clock: PSNR/SSIM of the held-out views at each report
     time (the checkpoint saved last before it), in the shape of `bench recon`'s JSON."""
     from repaint_nerf.core.errors import UserError
@@ -144,8 +150,8 @@ def measure(scene_path: Path, seconds: float, ns_venv: Path, work: Path, report_
         raise UserError("this scene has no held-out views to score", hint="give --holdout-every N")
     shutil.rmtree(work, ignore_errors=True)
     data = work / "data"
-    export_scene(scene, data)
-    cmd = train_command(ns_bin, data, work / "out", steps_per_save)
+    meta = export_scene(scene, data, eval_views)
+    cmd = train_command(ns_bin, data, work / "out", steps_per_save, alpha=scene.train.images[0].shape[-1] == 4)
     run = run_for(cmd, seconds, work / "ns-train.log")
     run_dir = work / "out" / "bench" / "nerfacto" / "run"
     ckpts = checkpoints(run_dir, run["started"])
@@ -163,9 +169,10 @@ def measure(scene_path: Path, seconds: float, ns_venv: Path, work: Path, report_
     return {
         "method": "nerfstudio nerfacto, reduced for CPU (" + " ".join(CPU_OPTIONS) + ")",
         "scene": {"path": str(scene_path), "name": Path(scene_path).name, "format": scene.format,
-                  "train_views": len(scene.train), "test_views": len(scene.splits["test"]),
+                  "train_views": len(scene.train), "test_views": len(meta["test_filenames"]),
                   "size": list(scene.train.images[0].shape[:2])},
         "evaluation": {"split": "test", "holdout": scene.extra.get("holdout"),
+                       "views": "all" if eval_views is None else f"the first {eval_views}",
                        "images": "this project's loader's images (undistorted, at bench recon's size), written as "
                                  "PNG with split lists, so both methods see the same pixels",
                        "appearance": "nerfacto's mean appearance embedding (use_average_appearance_embedding)",

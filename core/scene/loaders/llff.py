@@ -14,7 +14,8 @@ from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.cameras import Cameras
 from repaint_nerf.core.scene.loaders.common import (TEST_EVERY, check_pose, every_eighth_split, holdout_note,
                                                     load_split, wanted)
-from repaint_nerf.core.scene.loaders.images import list_images
+from repaint_nerf.core.scene.loaders.images import list_images, read_image
+from repaint_nerf.core.scene.loaders.masks import find_masks, with_mask
 from repaint_nerf.core.scene.scene import Scene
 
 
@@ -100,12 +101,17 @@ def load_llff(root: Path, downscale: float = 1.0, splits=None, max_size: int = 0
                          hint="the images and poses must match one to one (sorted by file name)")
     h, w, f = hwf[:, 0], hwf[:, 1], hwf[:, 2]
     cams = Cameras.create(c2w, f, f, w / 2.0, h / 2.0, np.round(w), np.round(h))
+    masks = find_masks(root, folder, files)
     tr, te = every_eighth_split(n, holdout_every)
     out = {}
     for name, idx in (("train", tr), ("test", te)):
         if idx and wanted(name, splits):
+            reader = None if masks is None else (lambda i, p, m=[masks[j] for j in idx]: with_mask(read_image(p), m[i]))
             out[name] = load_split(cams[idx], [files[i] for i in idx], [files[i].name for i in idx], downscale,
-                                   max_size=max_size)
+                                   reader=reader, max_size=max_size)
+    extra = {"bounds": bounds, "images_dir": folder.name,
+             "holdout": holdout_note(holdout_every, "image file names sorted")}
+    if masks is not None:
+        extra["masks_dir"] = masks[0].parent.name
     return Scene(root=root, format="llff", splits=out, kind="forward", near=float(bounds.min() * 0.9),
-                 far=float(bounds.max() * 1.1), extra={"bounds": bounds, "images_dir": folder.name,
-                        "holdout": holdout_note(holdout_every, "image file names sorted")})
+                 far=float(bounds.max() * 1.1), extra=extra)

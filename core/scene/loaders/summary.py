@@ -61,6 +61,7 @@ def scene_summary(scene: Scene) -> dict:
         "far": float(scene.far),
         "background": None if scene.background is None else [float(c) for c in scene.background],
         "alpha": bool(alpha),
+        "masks": scene.extra.get("masks_dir"),
         "points": 0 if scene.points is None else int(len(scene.points)),
         "depth_gt": _depth_gt(scene),
         "camera_models": scene.extra.get("camera_models"),
@@ -110,7 +111,9 @@ def format_summary(info: dict) -> str:
     if bg is not None:
         lines.append(f"background      [{', '.join(map(f, bg))}]" + (", images have alpha" if info["alpha"] else ""))
     elif info["alpha"]:
-        lines.append("background      none given, images have alpha (random in training, white for evaluation)")
+        why = (f"alpha from the object masks in {info['masks']}/: the background is left out"
+               if info.get("masks") else "images have alpha")
+        lines.append(f"background      none given, {why} (random in training, white for evaluation)")
     else:
         lines.append("background      not needed (opaque images)")
     lines.append(f"sparse points   {info['points'] or 'none'}")
