@@ -235,3 +235,11 @@ def test_captures_table_puts_both_methods_side_by_side_and_docs_render_it(tmp_pa
     assert "| fox | ours | 20.40 |" in text and "18.50 at 1790 s" in text and text.count("| fern |") == 1
     assert main(["bench", "captures", "--table", "fox"]) != 0
     assert "NAME=OURS.json" in capsys.readouterr().err
+    # --update replaces the rows given and keeps the others (a capture measured on another day)
+    assert main(["bench", "captures", "--table", f"fern={tmp_path / 'o.json'},{tmp_path / 'n.json'}", "--update",
+                 "--json", str(out)]) == 0
+    updated = json.loads(out.read_text())
+    assert updated["captures"]["fox"] == fox and updated["captures"]["fern"]["nerfacto"]["longest"]["psnr"] == 18.5
+    assert main(["bench", "captures", "--table", f"fern={tmp_path / 'o.json'}", "--update", "--json",
+                 str(tmp_path / "none.json")]) != 0
+    assert "existing table" in capsys.readouterr().err

@@ -19,6 +19,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                            "(repeat per capture; with --json, e.g. docs/bench/captures.json for repaint-nerf docs)")
     p.add_argument("--json", default=None, help="with --table: where to write the table")
     p.add_argument("--machine", default="", help="with --table: how the runs were taken (cores, threads), in words")
+    p.add_argument("--update", action="store_true",
+                   help="with --table and --json: replace only the captures given, keeping the other rows of the "
+                        "existing table (each row keeps its own date and command)")
     p.add_argument("--from", dest="source", default=None,
                    help="the fetched snapshot's git directory (e.g. /work/.mirror/OWNER+NAME/repo) or a plain folder")
     p.add_argument("--dest", default=None, help=f"folder that receives NAME/ (default {default_root()})")
@@ -58,8 +61,17 @@ def _table(args: argparse.Namespace) -> int:
         rows[name] = side_by_side(loaded[0], loaded[1] if len(loaded) > 1 else None)
         firsts.append(loaded[0])
     devices = sorted({str(d.get("device")) for d in firsts if d.get("device")})
-    table = {"machine": args.machine, "device": ", ".join(devices) or "?", "report_at": ["60", "120", "300"],
-             "captures": rows}
+    old = {}
+    if args.update:
+        if not args.json or not Path(args.json).is_file():
+            raise UserError("--update needs --json naming an existing table", hint="drop --update to write a new one")
+        try:
+            old = json.loads(Path(args.json).read_text())
+        except ValueError as exc:
+            raise UserError(f"{args.json} is not a table bench captures wrote ({exc})") from None
+        devices = sorted(set(devices) | {d for d in str(old.get("device", "")).split(", ") if d and d != "?"})
+    table = {"machine": args.machine or old.get("machine", ""), "device": ", ".join(devices) or "?",
+             "report_at": ["60", "120", "300"], "captures": {**old.get("captures", {}), **rows}}
     text = json.dumps(table, indent=1)
     if args.json:
         Path(args.json).write_text(text + "\n")
