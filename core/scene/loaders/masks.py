@@ -45,23 +45,24 @@ def find_masks(root: Path, image_folder: Path, images: list[Path]) -> list[Path]
     return found  # type: ignore[return-value]
 
 
+REDUCED = {8: cv2.IMREAD_REDUCED_GRAYSCALE_8, 4: cv2.IMREAD_REDUCED_GRAYSCALE_4, 2: cv2.IMREAD_REDUCED_GRAYSCALE_2,
+           1: cv2.IMREAD_GRAYSCALE}
+
+
 def read_mask(path: Path, width: int, height: int) -> np.ndarray:
     """A mask as uint8 (height, width) alpha. A mask much larger than the image is decoded at 1/2, 1/4 or 1/8
-    of its size (JPEG's reduced decoding: a 4000-px mask in milliseconds, not the full decode)."""
+    of its size (JPEG's reduced decoding: a 4000-px mask in milliseconds, not the full decode). The 1/8 decode
+    comes first: it is cheap and its size gives the full size to within 8 px."""
     data = np.fromfile(path, dtype=np.uint8) if path.is_file() else None
-    head = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE) if data is not None and data.size else None
-    if head is None:
+    small = cv2.imdecode(data, REDUCED[8]) if data is not None and data.size else None
+    if small is None:
         raise SceneError("not a readable mask image", path, hint="replace it, or move the masks folder aside to "
                                                                  "train on the full images")
-    mask = head
-    for k, flag in ((8, cv2.IMREAD_REDUCED_GRAYSCALE_8), (4, cv2.IMREAD_REDUCED_GRAYSCALE_4),
-                    (2, cv2.IMREAD_REDUCED_GRAYSCALE_2)):
-        if head.shape[1] >= k * width and head.shape[0] >= k * height:
-            mask = cv2.imdecode(data, flag)
-            break
+    k = next((k for k in (8, 4, 2) if small.shape[1] * 8 >= k * width and small.shape[0] * 8 >= k * height), 1)
+    mask = small if k == 8 else cv2.imdecode(data, REDUCED[k])
     if mask.shape[1] * height != mask.shape[0] * width:
-        raise SceneError(f"mask is {head.shape[1]}x{head.shape[0]}, its image's aspect is {width}x{height}", path,
-                         hint="masks must have their images' aspect ratio")
+        raise SceneError(f"mask is {mask.shape[1]}x{mask.shape[0]} as read at 1/{k} of its size, its image's "
+                         f"aspect is {width}x{height}", path, hint="masks must have their images' aspect ratio")
     if mask.shape[:2] != (height, width):
         mask = cv2.resize(mask, (width, height), interpolation=cv2.INTER_AREA)
     alpha = (mask.astype(np.float32) - ALPHA_FLOOR) * (255.0 / (ALPHA_CEIL - ALPHA_FLOOR))
@@ -71,7 +72,6 @@ def read_mask(path: Path, width: int, height: int) -> np.ndarray:
 def with_mask(img: np.ndarray, mask_path: Path) -> np.ndarray:
     """The image's RGB with the mask as its alpha (an alpha the image already has is multiplied in)."""
     alpha = read_mask(mask_path, img.shape[1], img.shape[0])
-    if img.ndim == 3 and img.shape[2] == 4:
+    if img.shape[2] == 4:
         alpha = (alpha.astype(np.uint16) * img[..., 3] // 255).astype(np.uint8)
-    rgb = img[..., :3] if img.ndim == 3 else np.repeat(img[..., None], 3, axis=2)
-    return np.dstack([rgb, alpha])
+    return np.dstack([img[..., :3], alpha])  # read_image gives RGB(A), never grey
