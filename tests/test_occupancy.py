@@ -165,3 +165,25 @@ def test_skipping_changes_psnr_by_less_than_half_a_db():
         full = render_camera(model, None, cams, i, opts)
         assert abs(psnr(skip["rgb"], gt) - psnr(full["rgb"], gt)) < 0.5
         assert skip["stats"]["samples"] < 0.2 * full["stats"]["samples"]
+
+
+@pytest.mark.parametrize("resolution,cascade", [(16, 0), (128, 1), (256, 0)])
+def test_cell_index_matches_a_plain_floor_and_flatten(resolution, cascade):
+    """The float-matmul cell index equals floor-then-flatten in integers for points inside, on the edges of and
+    outside the cascade, and gives a NaN point a cell inside the grid."""
+    grid = OccupancyGrid(resolution=resolution, cascades=2, bound=0.5, device="cpu")
+    e, r = grid.cascade_extent(cascade), resolution
+    g = torch.Generator().manual_seed(resolution)
+    inside = (torch.rand(20000, 3, generator=g) * 2 - 1) * e
+    faces = torch.tensor([[-e, -e, -e], [e, e, e], [e - 1e-7, 0.0, -e], [0.0, e * (1 - 1e-6), e]])
+    outside = torch.tensor([[3 * e, -5 * e, 0.0], [float("inf"), float("-inf"), 0.1]])
+    x = torch.cat([inside, faces, outside])
+    ijk = torch.floor((x.double() + e) * (r / (2 * e))).clamp(0, r - 1).long()
+    want = (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]
+    got = grid._cell_index(x, cascade)
+    assert got.dtype == torch.long
+    # a point within float32 rounding of a cell face may land on either side of it; nowhere else may they differ
+    differ = got != want
+    assert int(differ[:20000].sum()) <= 2 and not bool(differ[20000:].any())
+    nan = int(grid._cell_index(torch.tensor([[float("nan"), 0.0, 0.0]]), cascade)[0])
+    assert 0 <= nan < r ** 3  # a valid cell, never an index past the grid
