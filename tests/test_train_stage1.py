@@ -417,6 +417,17 @@ def test_cli_bad_input(tmp_path, capsys):
     assert "not a repaint-nerf workspace" in capsys.readouterr().err
 
 
+def test_cli_rejects_a_negative_distortion_before_touching_the_workspace(tiny_scene, tmp_path, capsys):
+    from repaint_nerf.app.cli import main
+
+    path, _ = tiny_scene
+    ws = tmp_path / "ws"
+    assert main(["train", str(path), "--workspace", str(ws), "--steps", "1", "--distortion", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--distortion" in err and "Traceback" not in err
+    assert not ws.exists()
+
+
 class _ManualStream:
     """A feature stream (core.teachers.feature_stream) whose codes the test hands over itself."""
 

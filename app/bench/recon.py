@@ -32,6 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--eval-views", type=int, default=None, help="test views per evaluation (default: all)")
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
     p.add_argument("--lr", type=float, default=None)
+    p.add_argument("--distortion", type=float, default=None, metavar="W",
+                   help="distortion loss weight, as train --distortion (default: the trainer's)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--profile-steps", type=int, default=8, help="extra profiled steps for the breakdown")
     p.add_argument("--json", required=True, help="output JSON path")
@@ -104,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(scene_path, args.seconds, args.evals, args.eval_views, args.rays, args.lr, args.seed,
                          args.profile_steps, args.downscale, args.device, progress, args.holdout_every, report_at,
-                         not args.no_minute_curve, kind=args.kind)
+                         not args.no_minute_curve, kind=args.kind, distortion=args.distortion)
         result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
         out = Path(args.json)
         atomic.write_json(out, result)

@@ -42,6 +42,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper)")
     p.add_argument("--max-samples", type=int, default=None,
                    help="steps across the field cube's diagonal (default: 2 per pixel of the images, 128..256; a long run may ask 512 or 1024)")
+    p.add_argument("--distortion", type=float, default=None, metavar="W",
+                   help="weight of mip-NeRF 360's distortion loss, which gathers each ray's density into one surface "
+                        "instead of a fog: fewer samples per ray, faster renders (default: 0.01 for forward-facing "
+                        "scenes, else 0 = off; docs/ARCHITECTURE.md has the figures)")
     p.add_argument("--no-features", action="store_true",
                    help="skip the semantic feature field (faster; the workspace then cannot be selected in)")
     p.add_argument("--no-depth", action="store_true", help="skip the sparse depth priors")
@@ -137,6 +141,12 @@ def run(args: argparse.Namespace) -> int:
         cfg.max_samples = args.max_samples
     if args.appearance is not None:
         cfg.appearance = "on" if args.appearance else "off"
+    if args.distortion is not None:
+        if not args.distortion >= 0:
+            from repaint_nerf.core.errors import UserError
+
+            raise UserError(f"--distortion must be 0 or more, got {args.distortion}", hint="e.g. --distortion 0.01")
+        cfg.lambda_distortion = args.distortion
     teachers = Teachers(features=not args.no_features, depth=not args.no_depth,  # paper Eq. s1
                         feature_model=args.feature_model, feature_size=feature_size, feature_norm=args.feature_norm,
                         depth_model=args.depth_model)

@@ -200,7 +200,7 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
             downscale: float = 1.0, device: str | None = None,
             progress: Callable[[dict], None] | None = None, holdout_every: int | None = None,
             report_at=REPORT_AT, minute_curve: bool = True, bounded_curve: bool | None = None,
-            kind: str | None = None) -> dict:
+            kind: str | None = None, distortion: float | None = None) -> dict:
     """Train stage 1 from scratch on a scene for `seconds` with test evaluations along the way (`evals` evenly
     spaced, the first-minute curve, and PSNR with SSIM at each `report_at` time); the result dict holds the curve,
     the figures at the report times, final PSNR/SSIM, render figures, the breakdown and the nerfacto reference
@@ -221,6 +221,8 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
         cfg.rays_per_batch = rays
     if lr:
         cfg.lr = lr
+    if distortion is not None:
+        cfg.lambda_distortion = distortion
     trainer = Stage1Trainer(scene, None, cfg, device=device)
     trainer.plan(seconds=seconds)
     # Every pixel of the first eval views, as the figures in earlier notes were measured (training's own
@@ -261,7 +263,7 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
         "evaluation": evaluation_protocol(scene, trainer, eval_views, bounded_curve),
         "device": describe(trainer.device),
         "train_config": {"rays_per_batch": cfg.rays_per_batch, "lr": cfg.lr, "schedule": cfg.schedule,
-                         "seconds": seconds},
+                         "lambda_distortion": trainer.cfg.lambda_distortion, "seconds": seconds},
         "curve": curve,
         "at": at_times(curve, report_at),
         "minute_curve": [p for p in curve if p.get("target") in {float(t) for t in MINUTE_CURVE}],

@@ -38,6 +38,13 @@ class RayPlan:
             return t0 + k * self.step
         return _cone_t(t0, k, self.step, self.cone)
 
+    def steps_to(self, ray: Tensor, t: Tensor) -> Tensor:
+        """Fractional step index of distance t on rays `ray` (the inverse of `t_at`)."""
+        t0 = self.t_near[ray]
+        if self.cone <= 0.0:
+            return (t - t0) / self.step
+        return _cone_steps(t0, t, self.step, self.cone)
+
 
 def _cone_t(t0: Tensor, k: Tensor, step: float, cone: float) -> Tensor:
     tc = step / cone

@@ -20,13 +20,14 @@ from repaint_nerf.core.device import synchronize
 from repaint_nerf.core.errors import UserError
 from repaint_nerf.core.field.appearance import with_ray_appearance
 from repaint_nerf.core.render import march_native
-from repaint_nerf.core.render.composite import apply_background, composite, optical_depth, segment_sum, transmittance
+from repaint_nerf.core.render.composite import (apply_background, composite, distortion, optical_depth, segment_sum,
+                                                transmittance)
 from repaint_nerf.core.render.box import cube
 from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
 from repaint_nerf.core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
 from repaint_nerf.core.scene.cameras import Cameras
 
-OUTPUTS = ("rgb", "depth", "opacity", "feature", "median_depth")
+OUTPUTS = ("rgb", "depth", "opacity", "feature", "median_depth", "distortion")
 STRATEGIES = ("auto", "filter", "rounds")
 
 
@@ -232,6 +233,9 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         with _Timer(acc, "compositing", prof, dev):
             totals = composite(sigma, s.t_start, s.t_end, s.t, s.ray, o.shape[0], vals,
                                median="median_depth" in opts.outputs, first_surface=_first_surface(opts))
+            if "distortion" in opts.outputs:  # in steps over the diagonal's budget: 1 across the field cube
+                lo, hi = (plan.steps_to(s.ray, t) / opts.max_samples for t in (s.t_start, s.t_end))
+                totals["distortion"] = distortion(totals["weights"], lo, hi, s.ray, o.shape[0])
     return totals
 
 
@@ -244,7 +248,9 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
     n_rays = origins.shape[0]
     heads = tuple(h for h in ("rgb", "feature") if h in opts.outputs)
     need = set(opts.outputs) | ({"opacity"} if {"rgb", "depth"} & set(opts.outputs) else set())
-    strategy = "filter" if opts.strategy == "filter" or _needs_grad(field) else "rounds"
+    # the distortion needs every sample of a ray at once: only the filter strategy composites them together
+    strategy = "filter" if opts.strategy == "filter" or _needs_grad(field) or "distortion" in opts.outputs \
+        else "rounds"
     bound, extent, cone = _march_params(field, grid)
     step = opts.step_size or default_step(bound, opts.max_samples)
     if cone > 0.0:  # steps start growing no farther than one field unit out (coarse steps: sooner)
@@ -273,7 +279,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
         pieces.append(out)
 
     result: dict = {}
-    sums = ("opacity", "depth_sum", *heads) + (("median_sum",) if "median_depth" in opts.outputs else ())
+    sums = ("opacity", "depth_sum", *heads) + (("median_sum",) if "median_depth" in opts.outputs else ()) \
+        + (("distortion",) if "distortion" in opts.outputs else ())
     cat = {k: torch.cat([p[k] for p in pieces]) if pieces else None for k in sums}
     opacity = cat["opacity"] if pieces else torch.zeros(0, device=dev)
     if "opacity" in need:
@@ -296,6 +303,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
                 else expected
     if "feature" in opts.outputs:
         result["feature"] = cat["feature"]
+    if "distortion" in opts.outputs:
+        result["distortion"] = cat["distortion"]
     if "opacity" not in opts.outputs:
         result.pop("opacity", None)
     stats = dict(acc.stats)
@@ -312,7 +321,8 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
 def render_rays(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor,
                 opts: RenderOptions | None = None) -> dict:
     """Render unit-direction rays (R,3) in field space: the asked outputs ('rgb' (R,3), 'depth' (R,) along
-    the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F)) plus 'stats'.
+    the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F), 'distortion' (R,):
+    core.render.composite.distortion in steps over max_samples) plus 'stats'.
     Differentiable; grid=None disables skipping."""
     return _render(field, grid, origins, dirs, opts or RenderOptions(), None)
 
