@@ -417,15 +417,19 @@ def test_cli_bad_input(tmp_path, capsys):
     assert "not a repaint-nerf workspace" in capsys.readouterr().err
 
 
-def test_cli_rejects_a_negative_distortion_before_touching_the_workspace(tiny_scene, tmp_path, capsys):
+def test_cli_rejects_a_bad_distortion_before_touching_the_workspace(tiny_scene, tmp_path, capsys):
     from repaint_nerf.app.cli import main
 
     path, _ = tiny_scene
     ws = tmp_path / "ws"
-    assert main(["train", str(path), "--workspace", str(ws), "--steps", "1", "--distortion", "-1"]) == 2
-    err = capsys.readouterr().err
-    assert "--distortion" in err and "Traceback" not in err
-    assert not ws.exists()
+    for bad in ("-1", "inf", "nan"):
+        assert main(["train", str(path), "--workspace", str(ws), "--steps", "1", "--distortion", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--distortion" in err and "Traceback" not in err
+        assert not ws.exists()
+    assert main(["bench", "recon", "--scene", str(path), "--seconds", "1", "--distortion", "inf",
+                 "--json", str(tmp_path / "r.json")]) == 2
+    assert "--distortion" in capsys.readouterr().err and not (tmp_path / "r.json").exists()
 
 
 class _ManualStream:

@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from repaint_nerf.core.session import LoadAs, Teachers, start_reconstruction
     from repaint_nerf.core.train.budget import CommandBudget
     from repaint_nerf.core.train.progress import ProgressBar
-    from repaint_nerf.core.train.stage1 import TrainConfig
+    from repaint_nerf.core.train.stage1 import TrainConfig, check_distortion_weight
 
     scene_path = Path(args.scene)
     if not scene_path.exists():
@@ -142,11 +142,7 @@ def run(args: argparse.Namespace) -> int:
     if args.appearance is not None:
         cfg.appearance = "on" if args.appearance else "off"
     if args.distortion is not None:
-        if not args.distortion >= 0:
-            from repaint_nerf.core.errors import UserError
-
-            raise UserError(f"--distortion must be 0 or more, got {args.distortion}", hint="e.g. --distortion 0.01")
-        cfg.lambda_distortion = args.distortion
+        cfg.lambda_distortion = check_distortion_weight(args.distortion)
     teachers = Teachers(features=not args.no_features, depth=not args.no_depth,  # paper Eq. s1
                         feature_model=args.feature_model, feature_size=feature_size, feature_norm=args.feature_norm,
                         depth_model=args.depth_model)

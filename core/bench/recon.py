@@ -211,18 +211,18 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
 
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
-    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
+    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig, check_distortion_weight
 
+    cfg = TrainConfig(seed=seed)
+    if distortion is not None:  # before the scene loads: a bad weight fails at once
+        cfg.lambda_distortion = check_distortion_weight(distortion)
     scene = load_scene(scene_path, downscale, kind=kind, holdout_every=holdout_every)
     if bounded_curve is None:  # a capture (no rendered test split) evaluates every pixel only at the report times
         bounded_curve = scene.extra.get("holdout", {}).get("rule") != "the dataset's own test split"
-    cfg = TrainConfig(seed=seed)
     if rays:
         cfg.rays_per_batch = rays
     if lr:
         cfg.lr = lr
-    if distortion is not None:
-        cfg.lambda_distortion = distortion
     trainer = Stage1Trainer(scene, None, cfg, device=device)
     trainer.plan(seconds=seconds)
     # Every pixel of the first eval views, as the figures in earlier notes were measured (training's own

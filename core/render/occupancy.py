@@ -85,7 +85,7 @@ class OccupancyGrid:
             ijk = ((x + e) * (r / (2.0 * e))).long().clamp_(0, r - 1)  # truncation == floor after the clamp
             return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2]  # not a matmul: CUDA has no integer matmul
         # float cell coordinates and a float matmul, exact below 2^24 cells: on CPU 9x faster at 262k points than
-        # integer arithmetic on (N,3) longs; the last clamp sends a NaN point to cell 0, as the integer path does
+        # integer arithmetic on (N,3) longs; the last clamp keeps a NaN point's index inside the grid
         ijk = ((x.float() + e) * (r / (2.0 * e))).clamp_(0, r - 1).floor_()
         return (ijk @ self._cell_weights(x.device)).long().clamp_(0, r ** 3 - 1)
 

@@ -125,6 +125,16 @@ class TrainConfig:
 FORWARD_DISTORTION = 0.01
 
 
+def check_distortion_weight(value: float, flag: str = "--distortion") -> float:
+    """A distortion weight the user gave, or a clear error: it must be finite and 0 or more (an infinite one
+    would make every step's loss non-finite, and each step would be skipped)."""
+    if not (math.isfinite(value) and value >= 0):
+        from repaint_nerf.core.errors import UserError
+
+        raise UserError(f"{flag} must be a finite number, 0 or more, got {value}", hint=f"e.g. {flag} 0.01 (0 = off)")
+    return float(value)
+
+
 def default_config(device: torch.device | None = None, image_size: int | None = None):
     """The field package's default config for this device and image size."""
     from repaint_nerf.core.field import field as fieldmod
