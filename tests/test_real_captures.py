@@ -2,6 +2,8 @@
 capped, and `train --seconds` bounding the whole command (issue 18)."""
 from __future__ import annotations
 
+import dataclasses
+import json
 import time
 
 import numpy as np
@@ -230,6 +232,30 @@ def test_early_steps_of_a_foggy_field_march_the_early_budget(scene_factory):
     assert spr[64] <= 64 and spr[0] > 4 * spr[64]
 
 
+def test_the_early_budget_follows_the_space_the_field_marches(scene_factory, tmp_path):
+    """Auto early budget: a field in its own cube marches EARLY_SAMPLES while it is fog, a warped (contracted or
+    NDC) one EARLY_SAMPLES_WARPED; a value the user gives is kept, and the resolved value is what the run records."""
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+    from repaint_nerf.core.synth.generate import make_scene
+    from repaint_nerf.core.train.stage1 import EARLY_SAMPLES, EARLY_SAMPLES_WARPED, Stage1Trainer, TrainConfig
+
+    bounded = load_scene(scene_factory("demo", size=32, views=4, test_views=2))
+    room = make_scene("room360", tmp_path / "room", size=32, views=4, test_views=2, seed=0)  # its own copy
+    for split in ("train", "test"):  # a capture has no box around its content: it is contracted
+        meta = json.loads((room / f"transforms_{split}.json").read_text())
+        meta.pop("aabb")
+        (room / f"transforms_{split}.json").write_text(json.dumps(meta))
+    warped = load_scene(room)
+    cfg = TrainConfig(seed=0, rays_per_batch=64, grid_resolution=16, max_samples=512)
+    a, b = Stage1Trainer(bounded, None, cfg), Stage1Trainer(warped, None, cfg)
+    assert a.grid.warp is None and b.grid.warp is not None
+    assert (a.march_samples, b.march_samples) == (EARLY_SAMPLES, EARLY_SAMPLES_WARPED)
+    assert EARLY_SAMPLES < EARLY_SAMPLES_WARPED
+    assert TrainConfig.from_dict(dataclasses.asdict(a.cfg)).early_max_samples == EARLY_SAMPLES
+    given = Stage1Trainer(warped, None, dataclasses.replace(cfg, early_max_samples=48))
+    assert given.march_samples == 48
+
+
 def test_march_ramp_starts_when_the_fog_clears_and_resumes_there(scene_factory):
     """A field whose filter pass drops candidates (rays reach the transmittance threshold) has cleared: the ramp
     starts at that step, whatever the step count; a checkpoint keeps the step, so a resumed run and a render of
@@ -313,7 +339,7 @@ def test_untrained_field_at_256_px_renders_in_4x_the_work_of_128_px(scene_factor
     ev = small.evaluate(full=True, max_views=1)
     work_small = ev["samples_per_ray"] * ev["pixels"]
     ev = big.evaluate(full=True, max_views=1)
-    early = TrainConfig().early_max_samples  # both sizes march the early budget while their field is fog
+    early = small.cfg.early_max_samples  # both sizes march the early budget while their field is fog
     assert ev["pixels"] == 256 * 256 and ev["samples_per_ray"] <= big.march_samples == small.march_samples == early
     assert ev["samples_per_ray"] * ev["pixels"] <= 4.0 * work_small * 1.01
     # the same field rendered at 256 px by the renderer directly marches the same samples per ray

@@ -84,11 +84,9 @@ class TrainConfig:
     t_threshold: float = 1e-4
     max_samples: int = 0  # steps across the cube's diagonal; 0 = auto (see sample_budget)
     # coarse-to-fine marching (see Stage1Trainer.march_samples): training marches this many steps across the
-    # diagonal while the field is fog, then grows to max_samples over grid_warmup_steps (0 = max_samples throughout).
-    # 64, a quarter of a 128-px view's budget: measured 400 steps from scratch at 128 px (one core), demo 63 s to
-    # 26.3 dB with 64 against 141 s to 25.7 dB with 256 (first 50 steps 0.12 s each against 0.79 s), toys 80 s to
-    # 25.1 dB against 157 s to 25.4 dB
-    early_max_samples: int = 64
+    # diagonal while the field is fog, then grows to max_samples over grid_warmup_steps (0 = max_samples throughout;
+    # None = auto: EARLY_SAMPLES for a field in its own cube, EARLY_SAMPLES_WARPED for a contracted or NDC one)
+    early_max_samples: int | None = None
     grid_resolution: int = 0  # occupancy cells per axis; 0 = auto (see grid_resolution_for)
     grid_cascades: int = 1
     grid_update_every: int = 16  # instant-ngp: 16
@@ -117,6 +115,15 @@ class TrainConfig:
             kw["betas"] = tuple(kw["betas"])
         return TrainConfig(**kw)
 
+
+# TrainConfig.early_max_samples's auto values. Measured from 256 (first 50 steps 0.79 s each) down: 64 gave demo 26.3 dB
+# in 63 s against 25.7 dB in 141 s with 256. Side by side at 90 s on 2 cores (docs/ARCHITECTURE.md, "The fog phase"):
+# 32 against 64 in the field's own cube halves the first 50 steps (demo 36 / 71 ms a step, toys 39 / 77; later steps
+# 31-32 / 26-31) and gains 1.8-3.2 dB at 10 s, the same at 30-90 s (demo 34.23 / 34.21, toys 34.32 / 34.19 dB); in a
+# warped space a step across its cube spans more of the scene, and 32 lost 0.2-0.7 dB there (fern 21.71 / 21.86,
+# fox 25.83 / 26.49 dB at 90 s) where the first 50 steps already cost 1.0-1.2x a later one
+EARLY_SAMPLES = 32
+EARLY_SAMPLES_WARPED = 64
 
 # the distortion weight of forward-facing scenes (TrainConfig.lambda_distortion), mip-NeRF 360's. Side by side on 2
 # cores (docs/ARCHITECTURE.md): fern (NDC) at 120 s +0.37 dB, 128-px renders 2.0x faster (49 samples per ray against
@@ -303,6 +310,9 @@ class Stage1Trainer:
         self.grid = grid_for_field(self.field, self.cfg.grid_resolution, self.cfg.grid_cascades, device=self.device,
                                    update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps,
                                    spread=self.cfg.grid_update_spread)
+        if self.cfg.early_max_samples is None:
+            early = EARLY_SAMPLES_WARPED if self.grid.warp is not None else EARLY_SAMPLES
+            self.cfg = dataclasses.replace(self.cfg, early_max_samples=early)
         self.optimizer = self._make_optimizer()
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
