@@ -420,14 +420,14 @@ class EditorApp:
         """
         idle = not (self._active or self.window.has_pending_input())
         wait = self._frame_started + 1.0 / (self.idle_fps if idle else self.max_fps) - time.perf_counter()
-        if wait > 0 and not self.window.clicked():
+        if wait > 0 and not self._answer_now():
             # An idle UI sleeps until input or the worker; an active one keeps its pace through mouse motion,
-            # but a click (a patch's release) or a result from the worker (a frame, a reply) ends the wait: it
-            # is answered, or goes on screen, without a pacing delay.
+            # but a click (a patch's release), the first move of a view at rest, or a result from the worker
+            # (a frame, a reply) ends the wait: it is answered, or goes on screen, without a pacing delay.
             deadline = time.perf_counter() + wait
             while (left := deadline - time.perf_counter()) > 0:
                 self.window.wait_events(left)
-                if idle or self.worker.result_ready() or self.window.clicked():
+                if idle or self.worker.result_ready() or self._answer_now():
                     break
         self._frame_started = time.perf_counter()
         self.window.begin_frame()
@@ -453,6 +453,16 @@ class EditorApp:
             self.frames_presented += 1
             self._queue_vote()
         return shot
+
+    def _answer_now(self) -> bool:
+        """Input that ends the frame pacing's wait: a click, or a camera move while the view on screen is the
+        one last asked for (no render in flight). The first move of a drag goes to the worker at once, up to a
+        frame period (33 ms) sooner; the drag's later moves keep the pace while their views render."""
+        if self.window.clicked():
+            return True
+        if self.requested_key is None or self.shown_key != self.requested_key:
+            return False
+        return self.window.navigated() or (self.camera is not None and self.camera.state() != self.requested_key[0])
 
     def _queue_vote(self) -> None:
         """Ask the training views' vote on the newest patch's threshold (Engine.refine_threshold) once its mask

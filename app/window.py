@@ -87,9 +87,12 @@ class Window:
         io.config_flags |= imgui.ConfigFlags_.nav_enable_keyboard.value
         io.set_ini_filename("")  # no imgui.ini next to the user's data
         self._clicked = False
-        # installed before imgui's backend, which chains it (one libglfw: imgui_bundle's)
-        self._on_button = lambda handle, button, action, mods: setattr(self, "_clicked", True)
+        self._navigated = False
+        self._held: set[int] = set()  # mouse buttons down, from glfw's callbacks
+        # installed before imgui's backend, which chains them (one libglfw: imgui_bundle's)
         glfw.set_mouse_button_callback(self.handle, self._on_button)
+        glfw.set_cursor_pos_callback(self.handle, self._on_cursor)
+        glfw.set_scroll_callback(self.handle, self._on_scroll)
         imgui.backends.glfw_init_for_opengl(_window_address(self.handle), True)
         imgui.backends.opengl3_init("#version 330")
         self._injectors: list[Callable[[imgui.IO], None]] = []
@@ -100,10 +103,25 @@ class Window:
         self._injectors.append(fn)
         self._clicked = self._clicked or bool(getattr(fn, "button", False))
 
+    def _on_button(self, handle, button: int, action: int, mods: int) -> None:
+        self._clicked = True
+        (self._held.add if action == glfw.PRESS else self._held.discard)(button)
+
+    def _on_cursor(self, handle, x: float, y: float) -> None:
+        self._navigated = self._navigated or bool(self._held)  # a drag moved; hovering is not navigation
+
+    def _on_scroll(self, handle, dx: float, dy: float) -> None:
+        self._navigated = True
+
     def clicked(self) -> bool:
         """A mouse button went down or up since this frame began: a patch's release or a press is answered
         at once, while mouse motion keeps the frame pace."""
         return self._clicked
+
+    def navigated(self) -> bool:
+        """The mouse moved with a button held, or the wheel turned, since this frame began: input that may
+        move the camera (the editor answers the first such input after the view rests without a pacing wait)."""
+        return self._navigated
 
     def should_close(self) -> bool:
         return self._closed or glfw.window_should_close(self.handle)
@@ -127,7 +145,7 @@ class Window:
         return bool(self._injectors)
 
     def begin_frame(self) -> None:
-        self._clicked = False
+        self._clicked = self._navigated = False
         glfw.poll_events()
         imgui.backends.opengl3_new_frame()
         imgui.backends.glfw_new_frame()

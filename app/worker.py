@@ -20,6 +20,14 @@ from repaint_nerf.core.errors import UserError, WorkspaceDamaged
 
 
 PREVIEW_TRAIN_RATIO = 3.0  # seconds of training per second of preview rendering, at least
+# No training step starts within this many seconds of a view request: a user who moves the camera moves it again
+# soon, and that move's frame would wait for the step under way (the demo's bench viewport: the worker was in a
+# step at every move, which ended 1-31 ms later, median 12; a real capture's step takes 120-150 ms on 2 cores).
+NAV_HOLD_S = 1.0
+# The first frame of a moved view renders in about this long (DynamicResolution's target): issue 33's goal is 50 ms
+# from the move to the frame on screen, and the UI's share is 11-13 ms (the request 1 ms; upload and a 1280x800 draw
+# on Mesa's llvmpipe 10-12 ms). The demo's moves took 55 ms at 40 and 44 ms at 35 (first frames at 0.28 / 0.24 scale)
+RENDER_TARGET_MS = 35.0
 
 
 @dataclass
@@ -85,12 +93,13 @@ def _pixels(cameras: Any) -> int | None:
 class Worker:
     """Owns `engine` on a background thread. The UI calls `request_render`, `call`, `poll`."""
 
-    def __init__(self, engine: Any, target_ms: float = 40.0, train_budget_s: float = 0.1,
-                 rest_s: float = 0.15, preview_interval_s: float = 1.0):
+    def __init__(self, engine: Any, target_ms: float = RENDER_TARGET_MS, train_budget_s: float = 0.1,
+                 rest_s: float = 0.15, preview_interval_s: float = 1.0, nav_hold_s: float = NAV_HOLD_S):
         self.engine = engine
         self.controller = DynamicResolution(target_ms=target_ms, scale=0.25)
         self.train_budget_s = train_budget_s
         self.rest_s = rest_s
+        self.nav_hold_s = max(nav_hold_s, rest_s)  # training waits for the user to stop navigating (NAV_HOLD_S)
         self.preview_interval_s = preview_interval_s
         self.training = True
         self.held = False  # the user is mid-gesture (a patch drag): no new training step starts
@@ -270,10 +279,11 @@ class Worker:
         self._publish(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
         return True
 
-    def _camera_moving(self) -> bool:
+    def _navigating(self) -> bool:
+        """A view was requested within nav_hold_s: the user may move again, so no training step starts."""
         with self._lock:
             req = self._latest
-        return req is not None and (time.perf_counter() - req.time) < self.rest_s
+        return req is not None and (time.perf_counter() - req.time) < self.nav_hold_s
 
     def _interrupted(self) -> Callable[[], bool]:
         """True once a new view is requested or a command waits: training yields between steps, so a camera
@@ -284,7 +294,7 @@ class Worker:
                         or (self._latest is not None and self._latest.serial != serial))
 
     def _train(self) -> bool:
-        if (not self.training or self.held or self._camera_moving()
+        if (not self.training or self.held or self._navigating()
                 or not getattr(self.engine, "can_train", lambda: False)()):
             return False
         info = self.engine.train_for(self.train_budget_s, stop=self._interrupted())

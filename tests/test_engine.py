@@ -53,7 +53,7 @@ def test_training_yields_between_steps_when_asked(engine):
 def test_worker_yields_training_to_views_commands_and_gestures(engine):
     from repaint_nerf.app.worker import Worker
 
-    worker = Worker(engine)
+    worker = Worker(engine, nav_hold_s=0.3)
     stop = worker._interrupted()
     assert not stop()
     worker.request_render(engine.info()["cameras"][0], key=("moved",))
@@ -67,7 +67,9 @@ def test_worker_yields_training_to_views_commands_and_gestures(engine):
     worker.hold(True)  # a patch drag: no training step starts, a running one yields
     assert worker._interrupted()() and worker._train() is False
     worker.hold(False)
-    time.sleep(worker.rest_s)  # the requested view has come to rest
+    time.sleep(worker.rest_s)  # the requested view has come to rest, but the user may move again: no step yet
+    assert worker._train() is False
+    time.sleep(worker.nav_hold_s - worker.rest_s)  # no move for nav_hold_s: the user stopped navigating
     assert worker._train() is True
 
 

@@ -467,6 +467,54 @@ def test_a_moved_view_is_not_redrawn_stale_while_it_renders(editor):
     run_until(editor, lambda: full_frame(editor))
 
 
+def test_the_first_move_of_a_resting_view_skips_the_frame_pacing(editor):
+    """An active UI paces its frames (max_fps), but the first camera move of a view at rest is sent to the
+    worker at once; the drag's next move, while that view renders, waits for its frame as before."""
+    run_until(editor, lambda: full_frame(editor))
+    x0 = editor.window.framebuffer_size()[0] - 100  # over the panels: input that keeps the UI active
+    editor.max_fps = 1.0  # a one-second pace, so a skipped wait is plain to see
+    try:
+        for dx in (0, 1):
+            editor.window.inject(mouse(x0 + dx, 300))
+            editor.frame()
+        assert editor._active and editor.shown_key == editor.requested_key
+        editor.engine.render_delay = 2.0
+        editor.camera.orbit(20, 0)
+        t0 = time.perf_counter()
+        editor.frame()
+        assert time.perf_counter() - t0 < 0.5
+        assert editor.requested_key[0] == editor.camera.state()  # the request went out in that frame
+        editor.camera.orbit(20, 0)  # its view renders (2 s): this move keeps the pace
+        t0 = time.perf_counter()
+        editor.frame()
+        assert time.perf_counter() - t0 > 0.6
+    finally:
+        editor.max_fps = 30.0
+        editor.engine.render_delay = 0.0
+    run_until(editor, lambda: full_frame(editor))
+
+
+def test_window_flags_a_drag_as_navigation_but_not_a_hover(editor):
+    """The window's own input callbacks: mouse motion with a button held (or the wheel) may move the camera;
+    motion with no button held does not."""
+    import glfw
+
+    w = editor.window
+    w._navigated = False
+    w._on_cursor(w.handle, 10.0, 10.0)
+    assert not w.navigated()
+    w._on_button(w.handle, 1, glfw.PRESS, 0)
+    w._on_cursor(w.handle, 12.0, 10.0)
+    assert w.navigated() and w.clicked()
+    w._on_button(w.handle, 1, glfw.RELEASE, 0)
+    w._navigated = False
+    w._on_cursor(w.handle, 14.0, 10.0)
+    assert not w.navigated()
+    w._on_scroll(w.handle, 0.0, 1.0)
+    assert w.navigated()
+    frames(editor, 1)
+
+
 def test_select_by_text_calls_the_engine_and_shows_the_mask(editor):
     editor.clear_selection()
     run_until(editor, lambda: editor.engine.query is None)
