@@ -14,6 +14,7 @@ from repaint_nerf.core.scene.cameras import Cameras, look_at
 from repaint_nerf.core.scene.loaders.detect import detect_format, load_scene
 from repaint_nerf.core.scene.loaders.images import apply_orientation, read_image
 from repaint_nerf.core.scene.normalize import normalize_scene
+from repaint_nerf.core.scene.scene import SceneSplit
 from scene_writers import pattern, ring_poses, write_blender, write_colmap, write_image, write_llff
 
 ATOL_POSE = 1e-5
@@ -41,6 +42,8 @@ def test_blender_round_trip_exact(tmp_path):
         assert sp.cameras.width.tolist() == [24] * len(poses) and sp.cameras.height.tolist() == [16] * len(poses)
         for a, b in zip(sp.images, imgs):
             assert a.shape == (16, 24, 4) and np.array_equal(a, b)  # alpha kept for the renderer
+        assert sp.has_alpha and scene.extra["alpha"]
+        assert not SceneSplit(sp.cameras, [a[..., :3] for a in sp.images], sp.names).has_alpha
         assert sp.names == [f"{split}/r_{i}.png" for i in range(len(poses))]
     assert scene.background == (1.0, 1.0, 1.0)
     # the aabb fills the cube (with a small margin), centred

@@ -151,7 +151,7 @@ def measure(scene_path: Path, seconds: float, ns_venv: Path, work: Path, report_
     shutil.rmtree(work, ignore_errors=True)
     data = work / "data"
     meta = export_scene(scene, data, eval_views)
-    cmd = train_command(ns_bin, data, work / "out", steps_per_save, alpha=scene.train.images[0].shape[-1] == 4)
+    cmd = train_command(ns_bin, data, work / "out", steps_per_save, alpha=scene.train.has_alpha)
     run = run_for(cmd, seconds, work / "ns-train.log")
     run_dir = work / "out" / "bench" / "nerfacto" / "run"
     ckpts = checkpoints(run_dir, run["started"])

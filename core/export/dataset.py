@@ -87,7 +87,7 @@ def export_dataset(source, out: str | Path, masks: bool | list = True, cancel: C
             if masks is not True:  # masks the caller gave must be usable
                 raise
     # RGBA when the photos had alpha or the scene names a background to composite on
-    transparent = source.scene.background is not None or np.asarray(split.images[0]).shape[-1] == 4
+    transparent = source.scene.background is not None or split.has_alpha
     bg = np.asarray(source.background(), np.float32)
     opts = source.render_options(("rgb", "opacity"))  # black background: un-composited colour + opacity
     dev_cams = field_cams.to(source.device)

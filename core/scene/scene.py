@@ -58,6 +58,12 @@ class SceneSplit:
     def __len__(self) -> int:
         return len(self.images)
 
+    @property
+    def has_alpha(self) -> bool:
+        """Its images are RGBA (a loader keeps one channel count per split, so the first one tells)."""
+        shape = np.shape(self.images[0]) if self.images else ()
+        return len(shape) == 3 and shape[2] == 4
+
 
 @dataclass
 class Scene:

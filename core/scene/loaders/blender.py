@@ -62,8 +62,7 @@ def load_blender(root: Path, downscale: float = 1.0, splits=None, max_size: int 
     skipped = merge_reports(reports)
     if skipped is not None:
         extra["skipped"] = skipped
-    has_alpha = any(im.shape[2] == 4 for sp in out.values() for im in sp.images[:1])
-    extra["alpha"] = bool(has_alpha)
+    extra["alpha"] = any(sp.has_alpha for sp in out.values())
     extra["kind_given"] = kind is not None
     scene = Scene(root=root, format="blender", splits=out, background=background, kind=kind or "bounded",
                   extra=extra)

@@ -35,7 +35,7 @@ def scene_summary(scene: Scene) -> dict:
                                      s.cameras.cy.numpy()], 1) for s in scene.splits.values()])
     half = 1.0 / scene.norm.scale
     norm = dict(scene.extra.get("normalization", {}))
-    alpha = any(im.ndim == 3 and im.shape[2] == 4 for sp in scene.splits.values() for im in sp.images[:1])
+    alpha = any(sp.has_alpha for sp in scene.splits.values())
     warp, warp_reason = warp_summary(scene)
     appearance, appearance_reason = appearance_default(scene)
     return {
