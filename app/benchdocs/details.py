@@ -64,6 +64,21 @@ def _sdcost(d: dict) -> str:
             + table(("option", "s per step", "x baseline", "peak RSS (MB)", "hours for the paper's steps"), rows))
 
 
+def _scale(d: dict) -> str:
+    sizes = sorted(d["sizes"], key=lambda r: r["size"])
+    base = sizes[0].get("seconds_to_30")
+    rows = [(r["size"], num(r.get("seconds_to_25"), 1), num(r.get("seconds_to_30"), 1),
+             num(r["seconds_to_30"] / base) if base and r.get("seconds_to_30") else "-",
+             num(r.get("steps_per_s"), 1), num(r.get("samples_per_ray"), 1), num(r.get("render_ms"), 0),
+             num(r.get("final_psnr")), num(r.get("peak_rss_mb"), 0)) for r in sizes]
+    scene = d.get("scene", {})
+    return (f"Scene {scene.get('name', scene) if isinstance(scene, dict) else scene}, "
+            f"{sizes[0].get('train_views', '?')} training views, {num(d.get('seconds_per_size'), 0)} s of training "
+            f"per size (issue 33's goal: time to 30 dB at 256 px at most 2x that at 128, at 512 at most 4x):\n\n"
+            + table(("long side (px)", "s to 25 dB", "s to 30 dB", "x smallest", "steps/s", "samples per ray",
+                     "full-view render (ms)", "final PSNR (dB)", "peak RSS (MB)"), rows))
+
+
 def _captures(d: dict) -> str:
     times = d.get("report_at", ["60", "120", "300"])
     rows = []
@@ -90,6 +105,7 @@ def _generic(d: dict) -> str:
 SECTIONS: dict[str, tuple[str, Callable[[dict], str]]] = {
     "recon": ("Reconstruction speed", _recon), "viewport": ("Viewport latency", _viewport),
     "mask": ("Selection masks", _mask), "sdcost": ("Stable Diffusion step cost", _sdcost),
+    "scale": ("Cost against image size", _scale),
     "captures": ("Real captures, side by side with nerfacto", _captures),
 }
 

@@ -25,6 +25,8 @@ SOURCES: dict[str, Source] = {s.name: s for s in (
     Source("viewport", "viewport.json", "repaint-nerf bench viewport --json docs/bench/viewport.json"),
     Source("mask", "mask.json", "repaint-nerf bench mask --preset all --json docs/bench/mask.json"),
     Source("sdcost", "sdcost.json", "repaint-nerf bench sdcost --json docs/bench/sdcost.json"),
+    Source("scale", "scale.json", "repaint-nerf bench scale --preset bread --views 100 --sizes 128,256,512 "
+                                  "--seconds 300 --json docs/bench/scale.json"),
     Source("captures", "captures.json", "repaint-nerf bench recon --scene CAPTURE --seconds 300 and bench nerfacto "
                                         "--scene CAPTURE on each prepared capture, then bench captures --table"),
 )}

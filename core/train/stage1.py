@@ -119,7 +119,8 @@ class TrainConfig:
 # TrainConfig.early_max_samples's auto values. Measured from 256 (first 50 steps 0.79 s each) down: 64 gave demo 26.3 dB
 # in 63 s against 25.7 dB in 141 s with 256. Side by side at 90 s on 2 cores (docs/ARCHITECTURE.md, "The fog phase"):
 # 32 against 64 in the field's own cube halves the first 50 steps (demo 36 / 71 ms a step, toys 39 / 77; later steps
-# 31-32 / 26-31) and gains 1.8-3.2 dB at 10 s, the same at 30-90 s (demo 34.23 / 34.21, toys 34.32 / 34.19 dB); in a
+# 31-32 / 26-31) and gains 1.8-3.2 dB at 10 s, the same at 30-90 s (demo 34.23 / 34.21, toys 34.32 / 34.19 dB, the
+# ethiopian_head capture 25.79 / 25.80 with its first 50 steps at 40 / 62 ms); in a
 # warped space a step across its cube spans more of the scene, and 32 lost 0.2-0.7 dB there (fern 21.71 / 21.86,
 # fox 25.83 / 26.49 dB at 90 s) where the first 50 steps already cost 1.0-1.2x a later one
 EARLY_SAMPLES = 32
