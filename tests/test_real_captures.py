@@ -234,10 +234,11 @@ def test_early_steps_of_a_foggy_field_march_the_early_budget(scene_factory):
 
 def test_the_early_budget_follows_the_space_the_field_marches(scene_factory, tmp_path):
     """Auto early budget: a field in its own cube marches EARLY_SAMPLES while it is fog, a warped (contracted or
-    NDC) one EARLY_SAMPLES_WARPED; a value the user gives is kept, and the resolved value is what the run records."""
+    NDC) one or one trained on depth priors EARLY_SAMPLES_FINE; a value the user gives is kept, and the resolved
+    value is what the run records."""
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.synth.generate import make_scene
-    from repaint_nerf.core.train.stage1 import EARLY_SAMPLES, EARLY_SAMPLES_WARPED, Stage1Trainer, TrainConfig
+    from repaint_nerf.core.train.stage1 import EARLY_SAMPLES, EARLY_SAMPLES_FINE, Stage1Trainer, TrainConfig
 
     bounded = load_scene(scene_factory("demo", size=32, views=4, test_views=2))
     room = make_scene("room360", tmp_path / "room", size=32, views=4, test_views=2, seed=0)  # its own copy
@@ -249,11 +250,15 @@ def test_the_early_budget_follows_the_space_the_field_marches(scene_factory, tmp
     cfg = TrainConfig(seed=0, rays_per_batch=64, grid_resolution=16, max_samples=512)
     a, b = Stage1Trainer(bounded, None, cfg), Stage1Trainer(warped, None, cfg)
     assert a.grid.warp is None and b.grid.warp is not None
-    assert (a.march_samples, b.march_samples) == (EARLY_SAMPLES, EARLY_SAMPLES_WARPED)
-    assert EARLY_SAMPLES < EARLY_SAMPLES_WARPED
+    assert (a.march_samples, b.march_samples) == (EARLY_SAMPLES, EARLY_SAMPLES_FINE)
+    assert EARLY_SAMPLES < EARLY_SAMPLES_FINE
     assert TrainConfig.from_dict(dataclasses.asdict(a.cfg)).early_max_samples == EARLY_SAMPLES
     given = Stage1Trainer(warped, None, dataclasses.replace(cfg, early_max_samples=48))
     assert given.march_samples == 48
+    priors = [np.where(im[..., 3] > 0, 4.0, np.nan).astype(np.float32) for im in bounded.train.images]
+    assert Stage1Trainer(bounded, None, cfg, depth_priors=priors).march_samples == EARLY_SAMPLES_FINE
+    unused = dataclasses.replace(cfg, lambda_depth=0.0)  # priors given but weighted 0: no depth to resolve
+    assert Stage1Trainer(bounded, None, unused, depth_priors=priors).march_samples == EARLY_SAMPLES
 
 
 def test_march_ramp_starts_when_the_fog_clears_and_resumes_there(scene_factory):

@@ -85,7 +85,8 @@ class TrainConfig:
     max_samples: int = 0  # steps across the cube's diagonal; 0 = auto (see sample_budget)
     # coarse-to-fine marching (see Stage1Trainer.march_samples): training marches this many steps across the
     # diagonal while the field is fog, then grows to max_samples over grid_warmup_steps (0 = max_samples throughout;
-    # None = auto: EARLY_SAMPLES for a field in its own cube, EARLY_SAMPLES_WARPED for a contracted or NDC one)
+    # None = auto: EARLY_SAMPLES for a field in its own cube, EARLY_SAMPLES_FINE for a contracted or NDC one or
+    # one trained on depth priors)
     early_max_samples: int | None = None
     grid_resolution: int = 0  # occupancy cells per axis; 0 = auto (see grid_resolution_for)
     grid_cascades: int = 1
@@ -122,9 +123,11 @@ class TrainConfig:
 # 31-32 / 26-31) and gains 1.8-3.2 dB at 10 s, the same at 30-90 s (demo 34.23 / 34.21, toys 34.32 / 34.19 dB, the
 # ethiopian_head capture 25.79 / 25.80 with its first 50 steps at 40 / 62 ms); in a
 # warped space a step across its cube spans more of the scene, and 32 lost 0.2-0.7 dB there (fern 21.71 / 21.86,
-# fox 25.83 / 26.49 dB at 90 s) where the first 50 steps already cost 1.0-1.2x a later one
+# fox 25.83 / 26.49 dB at 90 s) where the first 50 steps already cost 1.0-1.2x a later one. Depth priors supervise
+# the rendered depth, which a coarse march resolves no finer than its step: on a 32-px demo with priors the depth
+# loss after 100-120 steps was 0.08-0.11 at 32 against 0.034-0.038 at 64, so a field with priors keeps 64 as well
 EARLY_SAMPLES = 32
-EARLY_SAMPLES_WARPED = 64
+EARLY_SAMPLES_FINE = 64
 
 # the distortion weight of forward-facing scenes (TrainConfig.lambda_distortion), mip-NeRF 360's. Side by side on 2
 # cores (docs/ARCHITECTURE.md): fern (NDC) at 120 s +0.37 dB, 128-px renders 2.0x faster (49 samples per ray against
@@ -312,7 +315,8 @@ class Stage1Trainer:
                                    update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps,
                                    spread=self.cfg.grid_update_spread)
         if self.cfg.early_max_samples is None:
-            early = EARLY_SAMPLES_WARPED if self.grid.warp is not None else EARLY_SAMPLES
+            fine = self.grid.warp is not None or (self.depth is not None and bool(self.cfg.lambda_depth))
+            early = EARLY_SAMPLES_FINE if fine else EARLY_SAMPLES
             self.cfg = dataclasses.replace(self.cfg, early_max_samples=early)
         self.optimizer = self._make_optimizer()
         self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
