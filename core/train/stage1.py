@@ -307,6 +307,8 @@ class Stage1Trainer:
             self.field = type(self.field)(self.field_cfg).to(self.device)
         self.depth, self.depth_pixels = (self._prepare_depth(depth_priors) if depth_priors is not None
                                          else (None, None))
+        if not self.cfg.lambda_depth:  # weight 0: checked above, never rendered
+            self.depth = self.depth_pixels = None
         if self.cfg.lambda_distortion is None:
             forward = getattr(scene, "kind", "bounded") == "forward"
             self.cfg = dataclasses.replace(self.cfg, lambda_distortion=FORWARD_DISTORTION if forward else 0.0)
@@ -315,7 +317,7 @@ class Stage1Trainer:
                                    update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps,
                                    spread=self.cfg.grid_update_spread)
         if self.cfg.early_max_samples is None:
-            fine = self.grid.warp is not None or (self.depth is not None and bool(self.cfg.lambda_depth))
+            fine = self.grid.warp is not None or self.depth is not None
             early = EARLY_SAMPLES_FINE if fine else EARLY_SAMPLES
             self.cfg = dataclasses.replace(self.cfg, early_max_samples=early)
         self.optimizer = self._make_optimizer()
@@ -339,8 +341,6 @@ class Stage1Trainer:
         if not self.cfg.lambda_feature:
             self.close()
             self.features = self.feature_stream = self.feature_ready = None  # weight 0: never rendered
-        if not self.cfg.lambda_depth:
-            self.depth = self.depth_pixels = None
         self.outputs = ("rgb",) + (("feature",) if self.features is not None else ()) \
             + (("depth",) if self.depth is not None or self.cfg.reopen_error > 0 else ()) \
             + (("opacity",) if self.cfg.reopen_error > 0 else ()) \
