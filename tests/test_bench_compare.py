@@ -52,6 +52,18 @@ def test_scale_rows_per_size_and_size_ratios():
     assert size_row["better"] is True
 
 
+def test_scale_ratios_read_at_the_runs_own_goal():
+    """A run told other targets (a real capture that never reaches 30 dB) is compared at its highest one."""
+    base = {"targets": [22.0, 24.0], "sizes": [{"size": 128, "seconds_to_24": 40.0, "seconds_to_30": None},
+                                                {"size": 512, "seconds_to_24": 200.0}]}
+    head = {"targets": [22.0, 24.0], "sizes": [{"size": 128, "seconds_to_24": 30.0}, {"size": 512, "seconds_to_24": 90.0}]}
+    rows = {r["label"]: r for r in compare("scale", base, head)}
+    assert rows["512 px: seconds to 24 dB"]["ratio"] == pytest.approx(0.45)
+    ratio = rows["time to 24 dB, 512 px / 128 px"]
+    assert ratio["base"] == pytest.approx(5.0) and ratio["head"] == pytest.approx(3.0)
+    assert not any("30 dB" in label for label in rows)
+
+
 def test_fog_figures():
     steps = [0.4] * 50 + [0.1] * 200
     fog = fog_figures(steps)

@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-KEYS = {"size": int, "seconds_to_25": (float, type(None)), "seconds_to_30": (float, type(None)),
+KEYS = {"size": int, "seconds_to_10": (float, type(None)), "seconds_to_12.5": (float, type(None)),
         "steps_per_s_early": (float, type(None)), "steps_per_s": (float, type(None)), "samples_per_ray": float,
         "render_ms": float, "eval_seconds": float, "train_seconds": float, "peak_rss_mb": float}
 
@@ -16,8 +16,9 @@ def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
     scene = scene_factory("demo", size=48, views=6, test_views=3)
     out = tmp_path / "scale.json"
     assert main(["bench", "scale", "--scene", str(scene), "--sizes", "32,48", "--seconds", "3", "--evals", "1",
-                 "--early-seconds", "1", "--rays", "512", "--json", str(out)]) == 0
+                 "--early-seconds", "1", "--rays", "512", "--targets", "12.5,10", "--json", str(out)]) == 0
     res = json.loads(out.read_text())
+    assert res["targets"] == [10.0, 12.5]  # the PSNRs timed, sorted; a demo at 3 s passes 10 dB
     assert [e["size"] for e in res["sizes"]] == [32, 48]
     for e in res["sizes"]:
         for key, kind in KEYS.items():
@@ -27,14 +28,17 @@ def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
         assert 1 <= e["steps_early"] <= e["steps"] and e["steps_per_s_early"] > 0  # the first second's steps
         assert (e["steps_per_s"] is None) == (e["steps_early"] == e["steps"])
         assert len(e["curve"]) == 2 and e["curve"][0]["step"] == 0 and e["curve"][1]["step"] == e["steps"]
-        assert all(key in e for key in ("steps_to_25", "steps_to_30", "msamples_to_25", "msamples_to_30"))
+        assert all(key in e for key in ("steps_to_10", "steps_to_12.5", "msamples_to_10", "msamples_to_12.5"))
+        assert "seconds_to_30" not in e
+        assert e["seconds_to_10"] is not None and e["final_psnr"] > 10
         assert e["curve"][-1]["msamples"] > e["curve"][0]["msamples"] == 0.0
         steps = [r["step"] for r in e["trace"]]  # the trace follows training in order
         assert steps and steps == sorted(steps) and steps[-1] <= e["steps"]
         assert all(r["steps_per_s"] > 0 and r["samples_per_ray"] > 0 and 0 <= r["occupied"] <= 1 for r in e["trace"])
     assert res["isolated_processes"] and "bounded evaluation" in res["psnr_measured"]
     assert out.with_suffix(".png").stat().st_size > 1000
-    assert "wrote" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "wrote" in printed and "s->12.5" in printed and "s->30" not in printed
 
 
 def test_bench_scale_bad_sizes_are_a_user_error(tmp_path):
@@ -42,6 +46,15 @@ def test_bench_scale_bad_sizes_are_a_user_error(tmp_path):
 
     for bad in ("", "128,x", "4"):
         assert main(["bench", "scale", "--sizes", bad, "--json", str(tmp_path / "o.json")]) != 0
+
+
+def test_bench_scale_bad_targets_are_a_user_error(tmp_path, capsys):
+    from repaint_nerf.app.cli import main
+
+    for bad in ("", "25,x", "0", "120"):
+        assert main(["bench", "scale", "--sizes", "32", "--targets", bad, "--json", str(tmp_path / "o.json")]) != 0
+        assert "--targets" in capsys.readouterr().err
+    assert not (tmp_path / "o.json").exists()  # refused before any training
 
 
 def test_time_to_interpolates_between_evaluations():

@@ -91,6 +91,16 @@ def test_other_bench_files_get_a_section_and_check_reports_staleness(tmp_path):
     assert _docs(tmp_path, {"viewport.json": VIEWPORT}, "--check")[0] == 1, "a new JSON: out of date"
 
 
+def test_a_capture_scale_run_is_tabled_at_its_own_targets(tmp_path):
+    sizes = [{"size": 128, "seconds_to_22": 10.0, "seconds_to_24": 40.0, "final_psnr": 25.0},
+             {"size": 512, "seconds_to_22": 30.0, "seconds_to_24": 120.0, "final_psnr": 24.5}]
+    rc, _, page = _docs(tmp_path, {"scale_capture.json": {"targets": [22.0, 24.0], "sizes": sizes,
+                                                          "scene": {"name": "head"}, "measured": "2026-12-05"}})
+    section = page.split("## Cost against image size on a real capture")[1]
+    assert rc == 0 and "| s to 22 dB | s to 24 dB | x smallest (to 24 dB) |" in section
+    assert "| 512 | 30.0 | 120.0 | 3.00 |" in section and "time to 24 dB at 256 px" in section
+
+
 def test_a_readme_without_markers_is_an_error_that_says_where_the_table_goes(tmp_path, capsys):
     (tmp_path / "README.md").write_text("# no markers\n")
     assert _docs(tmp_path, {})[0] == 2

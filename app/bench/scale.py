@@ -8,7 +8,7 @@ from pathlib import Path
 
 from repaint_nerf.core.bench.scale import TARGETS, measure
 
-HELP = "cost against image size: time to 25/30 dB, steps/s, samples per ray, render ms, evaluation, peak RSS"
+HELP = "cost against image size: time to target PSNRs, steps/s, samples per ray, render ms, evaluation, peak RSS"
 
 
 def _sizes(text: str) -> list[int]:
@@ -24,6 +24,19 @@ def _sizes(text: str) -> list[int]:
     return sizes
 
 
+def _targets(text: str) -> tuple[float, ...]:
+    from repaint_nerf.core.errors import UserError
+
+    try:
+        targets = tuple(sorted(float(t) for t in str(text).split(",") if t.strip()))
+    except ValueError:
+        targets = ()
+    if not targets or any(not 0 < t < 100 for t in targets):
+        raise UserError(f"--targets must be a comma-separated list of PSNRs in dB, got {text!r}",
+                        hint="e.g. --targets 25,30; a real capture that never reaches 30 dB: --targets 22,24")
+    return targets
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", default=None, help="scene folder in any supported layout (default: generate --preset)")
     p.add_argument("--preset", default="demo", help="synthetic preset to generate when no --scene is given")
@@ -31,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, default=100, help="generated training views")
     p.add_argument("--test-views", type=int, default=20, help="generated test views")
     p.add_argument("--sizes", default="128,256,512", help="long sides to load the scene at (comma-separated)")
+    p.add_argument("--targets", default=",".join(f"{t:g}" for t in TARGETS),
+                   help="test PSNRs (dB) to time, comma-separated; the size ratios are read at the highest")
     p.add_argument("--seconds", type=float, default=60.0, help="training budget per size (evaluation not counted)")
     p.add_argument("--evals", type=int, default=12, help="test evaluations along each size's training")
     p.add_argument("--early-seconds", type=float, default=30.0, help="training seconds counted as early steps")
@@ -45,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def plot(result: dict, path: Path) -> None:
-    """Left: test PSNR against training seconds per size. Right: time to 25/30 dB and steps/s against size."""
+    """Left: test PSNR against training seconds per size. Right: time to each target and steps/s against size."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -55,7 +70,8 @@ def plot(result: dict, path: Path) -> None:
     for e in result["sizes"]:
         c = e["curve"]
         a.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=f"{e['size']} px")
-    for t in TARGETS:
+    targets = result.get("targets") or TARGETS
+    for t in targets:
         a.axhline(t, color="gray", lw=0.8, ls=":")
     a.set_xlabel("training seconds (evaluation excluded)")
     a.set_ylabel("test PSNR (dB, bounded evaluation)")
@@ -63,10 +79,11 @@ def plot(result: dict, path: Path) -> None:
     a.grid(alpha=0.3)
     a.legend(loc="lower right")
     sizes = [e["size"] for e in result["sizes"]]
-    for key, mark in (("seconds_to_25", "o-"), ("seconds_to_30", "s-")):
-        pts = [(s, e[key]) for s, e in zip(sizes, result["sizes"]) if e[key] is not None]
+    for t, mark in zip(targets, ("o-", "s-", "D-", "^-", "v-") * len(targets)):
+        pts = [(s, e.get(f"seconds_to_{t:g}")) for s, e in zip(sizes, result["sizes"])]
+        pts = [p for p in pts if p[1] is not None]
         if pts:
-            b.plot(*zip(*pts), mark, label=key.replace("seconds_to_", "s to ") + " dB")
+            b.plot(*zip(*pts), mark, label=f"s to {t:g} dB")
     b.set_xscale("log", base=2)
     b.set_xlabel("long side (px)")
     b.set_ylabel("seconds")
@@ -93,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
     from repaint_nerf.core.workspace import atomic
 
     sizes = _sizes(args.sizes)
+    targets = _targets(args.targets)
     if not args.seconds > 0:
         raise UserError(f"--seconds must be positive, got {args.seconds}")
     if args.evals < 1:
@@ -108,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"generating preset '{args.preset}' ({args.views} views, {size}px) ...")
         scene_path = make_scene(args.preset, Path(tmp.name) / args.preset, size=size, views=args.views,
                                 seed=args.seed, test_views=args.test_views)
-    print(f"{'size':>5} {'s->25':>7} {'s->30':>7} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
+    heads = "".join(f" {'s->' + format(t, 'g'):>7}" for t in targets)
+    print(f"{'size':>5}{heads} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
           f"{'eval s':>7} {'train s':>7} {'RSS MB':>7} {'PSNR':>6}", flush=True)
 
     out = Path(args.json)
@@ -117,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
     def progress(e: dict) -> None:
         done.append(e)
         atomic.write_json(out, {"sizes": done, "partial": True})  # a long run keeps what it measured
-        print(f"{e['size']:5d} {_fmt(e['seconds_to_25']):>7} {_fmt(e['seconds_to_30']):>7} "
+        times = "".join(f" {_fmt(e[f'seconds_to_{t:g}']):>7}" for t in targets)
+        print(f"{e['size']:5d}{times} "
               f"{_fmt(e['steps_per_s_early'], '.2f'):>9} {_fmt(e['steps_per_s'], '.2f'):>6} "
               f"{_fmt(e['samples_per_ray']):>6} {e['render_ms']:9.0f} {e['eval_seconds']:7.2f} "
               f"{e['train_seconds']:7.1f} {e['peak_rss_mb']:7.0f} {e['final_psnr']:6.2f}", flush=True)
@@ -125,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(scene_path, sizes, args.seconds, args.evals, args.seed, args.device, args.rays,
                          args.early_seconds, args.early_max_samples, isolate=not args.in_process,
-                         progress=progress)
+                         progress=progress, targets=targets)
     finally:
         if tmp is not None:
             tmp.cleanup()
