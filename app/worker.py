@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from repaint_nerf.app.feature_view import FeatureProjector
 from repaint_nerf.app.resolution import DynamicResolution
+from repaint_nerf.core.device import threads
 from repaint_nerf.core.errors import UserError, WorkspaceDamaged
 
 
@@ -28,6 +29,10 @@ NAV_HOLD_S = 1.0
 # from the move to the frame on screen, and the UI's share is 11-13 ms (the request 1 ms; upload and a 1280x800 draw
 # on Mesa's llvmpipe 10-12 ms). The demo's moves took 55 ms at 40 and 44 ms at 35 (first frames at 0.28 / 0.24 scale)
 RENDER_TARGET_MS = 35.0
+# Renders of a view the user is navigating (within NAV_HOLD_S of its request) run on this many CPU threads, so the
+# UI's drawing has a core: on 2 cores, torch's threads and Mesa llvmpipe's shared both and UI frames took 26-28 ms
+# at p99 against the goal of 16.7. Training and commands keep every thread (None: torch's count).
+NAV_RENDER_THREADS: int | None = 1
 
 
 @dataclass
@@ -94,12 +99,14 @@ class Worker:
     """Owns `engine` on a background thread. The UI calls `request_render`, `call`, `poll`."""
 
     def __init__(self, engine: Any, target_ms: float = RENDER_TARGET_MS, train_budget_s: float = 0.1,
-                 rest_s: float = 0.15, preview_interval_s: float = 1.0, nav_hold_s: float = NAV_HOLD_S):
+                 rest_s: float = 0.15, preview_interval_s: float = 1.0, nav_hold_s: float = NAV_HOLD_S,
+                 nav_threads: int | None = NAV_RENDER_THREADS):
         self.engine = engine
         self.controller = DynamicResolution(target_ms=target_ms, scale=0.25)
         self.train_budget_s = train_budget_s
         self.rest_s = rest_s
         self.nav_hold_s = max(nav_hold_s, rest_s)  # training waits for the user to stop navigating (NAV_HOLD_S)
+        self.nav_threads = nav_threads  # NAV_RENDER_THREADS
         self.preview_interval_s = preview_interval_s
         self.training = True
         self.held = False  # the user is mid-gesture (a patch drag): no new training step starts
@@ -260,7 +267,8 @@ class Worker:
         # move, a command or a gesture cancels them.
         cancel = self._stop.is_set if first else self._stale(req.serial)
         t0 = time.perf_counter()
-        data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
+        with threads(self.nav_threads if self._navigating() else None):
+            data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
         self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request, a command or a gesture

@@ -6,6 +6,8 @@ force a device with `REPAINT_NERF_DEVICE=cpu|cuda|cuda:1` and tests can pin the 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from functools import lru_cache
 
 import torch
@@ -53,3 +55,16 @@ def synchronize(device: torch.device | str | None = None) -> None:
     """Wait for queued kernels (timing needs it on CUDA; a no-op on CPU)."""
     if is_cuda(device):
         torch.cuda.synchronize(torch.device(device or get_device()))
+
+
+@contextmanager
+def threads(n: int | None) -> Iterator[None]:
+    """Run the calling thread's CPU work (torch ops and our native kernels) on at most `n` threads, restoring its
+    count after; None leaves it. torch's count is per calling thread, so other threads' work is not touched."""
+    before = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(max(1, min(int(n), before)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -37,7 +37,10 @@ OPTIONAL = {"sd": ("diffusers", "transformers")}
 MAX_RENDER_OVERSAMPLE = 2.0
 VOTE_SIDE = 128  # long side of the training views rendered to vote on a free-view patch's threshold (the
 # automatic threshold reads maps at 128 px at most: autothreshold.patch_auto_threshold_px)
-INTERACTIVE_CHUNK = 1 << 16  # samples per marching round of a cancellable (viewport) render
+# Samples per marching round of a cancellable (viewport) render, per CPU thread doing it: a cancel waits for at most
+# one round, so a render on fewer threads (the worker's while the user navigates) takes smaller rounds.
+INTERACTIVE_CHUNK_PER_THREAD = 1 << 15
+INTERACTIVE_CHUNK_CUDA = 1 << 16  # a GPU's rounds do not depend on the CPU threads
 
 
 def editor_train_config(device: torch.device) -> TrainConfig:
@@ -243,7 +246,8 @@ class Engine:
                              max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
                              feature_first_surface=FIRST_SURFACE)  # as the selection's views read it
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
-            opts.chunk = INTERACTIVE_CHUNK
+            opts.chunk = (INTERACTIVE_CHUNK_CUDA if self.device.type == "cuda"
+                          else INTERACTIVE_CHUNK_PER_THREAD * torch.get_num_threads())
         was_training = self.field.training
         self.field.eval()
         try:

@@ -89,3 +89,52 @@ def test_the_first_frame_of_a_large_view_renders_a_bounded_number_of_rays():
         worker.stop()
     scale = engine.log[0][1]
     assert 0 < (scale * 439) * (scale * 781) <= FIRST_FRAME_RAYS + 1 and scale < 0.25
+
+
+class ThreadEngine(SlowEngine):
+    """Records the CPU threads torch gives the worker's renders and training steps."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.render_threads: list[tuple[float, int]] = []
+        self.train_threads: list[int] = []
+
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+        import torch
+
+        self.render_threads.append((scale, torch.get_num_threads()))
+        return super().render(cameras, scale, outputs, cancel)
+
+    def can_train(self) -> bool:
+        return True
+
+    def train_for(self, seconds, stop=None):
+        import torch
+
+        self.train_threads.append(torch.get_num_threads())
+        time.sleep(0.01)
+        return {"step": len(self.train_threads)}
+
+
+def test_renders_of_a_navigated_view_leave_the_ui_a_core(monkeypatch):
+    """Within the navigation hold a view renders on `nav_threads` (the UI draws on the other core); the sharp
+    preview after the hold and the training steps run on every thread, and the worker's count is restored."""
+    import torch
+
+    count = [2]  # torch's thread count, as a 2-core machine starts it (a 1-core CI machine would hide the change)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: count[0])
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: count.__setitem__(0, n))
+    engine = ThreadEngine()
+    worker = Worker(engine, rest_s=0.05, nav_hold_s=0.3, nav_threads=1, preview_interval_s=0.0).start()
+    try:
+        worker.request_render("a", key=("a",))
+        t0 = time.perf_counter()
+        while len(engine.render_threads) < 3 and time.perf_counter() - t0 < 5:  # a preview after training resumed
+            worker.poll()
+            time.sleep(0.01)
+    finally:
+        worker.stop()
+    first, refined, preview = engine.render_threads[:3]
+    assert first[1] == 1 and refined == (1.0, 1)  # the move's frame and its refinement, within the hold
+    assert preview == (1.0, 2) and engine.train_threads and set(engine.train_threads) == {2}
+    assert count[0] == 2

@@ -20,7 +20,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from repaint_nerf.core.device import get_device, synchronize
+from repaint_nerf.core.device import get_device, synchronize, threads
 from repaint_nerf.core.render.occupancy import grid_for_field
 from repaint_nerf.core.render.renderer import RenderOptions, render_camera, render_rays
 from repaint_nerf.core.train import losses
@@ -536,12 +536,8 @@ class Stage1Trainer:
         stream = self.feature_stream
         if stream is None or self.device.type != "cpu":
             return self._step()
-        threads = torch.get_num_threads()  # this thread's pool (torch's setting is per thread)
-        torch.set_num_threads(max(1, threads - stream.threads))
-        try:
+        with threads(torch.get_num_threads() - stream.threads):
             return self._step()
-        finally:
-            torch.set_num_threads(threads)
 
     def _step(self) -> dict[str, Any]:
         prof = self.profile
