@@ -31,7 +31,8 @@ NAV_HOLD_S = 1.0
 RENDER_TARGET_MS = 35.0
 # Renders of a view the user is navigating (within NAV_HOLD_S of its request) run on this many CPU threads, so the
 # UI's drawing has a core: on 2 cores, torch's threads and Mesa llvmpipe's shared both and UI frames took 26-28 ms
-# at p99 against the goal of 16.7. Training and commands keep every thread (None: torch's count).
+# at p99 against the goal of 16.7. Training, commands and the selection tool's feature frames (a patch waits for
+# them) keep every thread (None: torch's count).
 NAV_RENDER_THREADS: int | None = 1
 
 
@@ -267,7 +268,7 @@ class Worker:
         # move, a command or a gesture cancels them.
         cancel = self._stop.is_set if first else self._stale(req.serial)
         t0 = time.perf_counter()
-        with threads(self.nav_threads if self._navigating() else None):
+        with threads(self.nav_threads if self._navigating() and "feature" not in req.outputs else None):
             data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
         self._last_render_s = ms / 1000.0

@@ -138,3 +138,20 @@ def test_renders_of_a_navigated_view_leave_the_ui_a_core(monkeypatch):
     assert first[1] == 1 and refined == (1.0, 1)  # the move's frame and its refinement, within the hold
     assert preview == (1.0, 2) and engine.train_threads and set(engine.train_threads) == {2}
     assert count[0] == 2
+
+
+def test_feature_frames_keep_every_thread(monkeypatch):
+    """The selection tool's views carry features, which a patch waits for: they render on every thread."""
+    import torch
+
+    count = [2]
+    monkeypatch.setattr(torch, "get_num_threads", lambda: count[0])
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: count.__setitem__(0, n))
+    engine = ThreadEngine()
+    worker = Worker(engine, rest_s=10.0, nav_hold_s=5.0, nav_threads=1).start()
+    try:
+        worker.request_render("a", key=("a",), outputs=("rgb", "feature"))
+        _frames(worker, lambda fs: len(fs) >= 1)
+    finally:
+        worker.stop()
+    assert engine.render_threads[0][1] == 2 and not engine.train_threads
