@@ -29,7 +29,7 @@ SOURCES: dict[str, Source] = {s.name: s for s in (
                                   "--seconds 300 --json docs/bench/scale.json"),
     Source("scale_capture", "scale_capture.json", "repaint-nerf bench scale --scene "
                                                   "~/.cache/repaint-nerf/captures/ethiopian_head --sizes 128,256,512 "
-                                                  "--seconds 300 --targets 22,24 --json docs/bench/scale_capture.json"),
+                                                  "--seconds 300 --evals 60 --targets 24,25 --json docs/bench/scale_capture.json"),
     Source("captures", "captures.json", "repaint-nerf bench recon --scene CAPTURE --seconds 300 and bench nerfacto "
                                         "--scene CAPTURE on each prepared capture, then bench captures --table"),
 )}
