@@ -9,7 +9,7 @@ from typing import Callable
 from repaint_nerf.app.benchdocs import headline
 from repaint_nerf.app.benchdocs.sources import SOURCES, Measured
 from repaint_nerf.app.benchdocs.text import num, table
-from repaint_nerf.core.bench.scale import TARGETS, goal_target
+from repaint_nerf.core.bench.scale import TARGETS, goal_target, size_ratio
 
 TITLE = """# Benchmarks
 
@@ -67,17 +67,16 @@ def _sdcost(d: dict) -> str:
 
 def _scale(d: dict) -> str:
     sizes = sorted(d["sizes"], key=lambda r: r["size"])
-    targets, goal = sorted(d.get("targets") or TARGETS), f"{goal_target(d):g}"
-    base = sizes[0].get(f"seconds_to_{goal}")
+    targets, goal = sorted(d.get("targets") or TARGETS), goal_target(d)
     rows = [(r["size"], *(num(r.get(f"seconds_to_{t:g}"), 1) for t in targets),
-             num(r[f"seconds_to_{goal}"] / base) if base and r.get(f"seconds_to_{goal}") else "-",
+             num(size_ratio(d, r["size"], sizes[0]["size"], goal)),
              num(r.get("steps_per_s"), 1), num(r.get("samples_per_ray"), 1), num(r.get("render_ms"), 0),
              num(r.get("final_psnr")), num(r.get("peak_rss_mb"), 0)) for r in sizes]
     scene = d.get("scene", {})
     return (f"Scene {scene.get('name', scene) if isinstance(scene, dict) else scene}, "
             f"{sizes[0].get('train_views', '?')} training views, {num(d.get('seconds_per_size'), 0)} s of training "
-            f"per size (issue 33's goal: time to {goal} dB at 256 px at most 2x that at 128, at 512 at most 4x):\n\n"
-            + table(("long side (px)", *(f"s to {t:g} dB" for t in targets), f"x smallest (to {goal} dB)",
+            f"per size (issue 33's goal: time to {goal:g} dB at 256 px at most 2x that at 128, at 512 at most 4x):\n\n"
+            + table(("long side (px)", *(f"s to {t:g} dB" for t in targets), f"x smallest (to {goal:g} dB)",
                      "steps/s", "samples per ray", "full-view render (ms)", "final PSNR (dB)", "peak RSS (MB)"), rows))
 
 

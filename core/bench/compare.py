@@ -8,7 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from repaint_nerf.core.bench.scale import goal_target
+from repaint_nerf.core.bench.scale import goal_target, size_ratio
 
 
 @dataclass(frozen=True)
@@ -94,17 +94,11 @@ def compare(bench: str, base: dict | None, head: dict | None) -> list[dict]:
 def size_ratio_rows(base: dict | None, head: dict | None) -> list[dict]:
     """Time to the goal PSNR (30 dB unless the runs were told other targets) at each size over that at the smallest
     (issue 33's targets: 2x at 256, 4x at 512 px of 128)."""
-    rows = []
     sizes = scale_sizes(base or {}, head or {})
-    t = f"{goal_target(head or base):g}"
-    for s in sizes[1:]:
-        vals = []
-        for r in (base, head):
-            lo = None if r is None else lookup(r, f"sizes[{sizes[0]}].seconds_to_{t}")
-            hi = None if r is None else lookup(r, f"sizes[{s}].seconds_to_{t}")
-            vals.append(hi / lo if lo and hi is not None else None)
-        rows.append(_row(f"time to {t} dB, {s} px / {sizes[0]} px", "x", *vals, lower_is_better=True))
-    return rows
+    t = goal_target(head or base)
+    return [_row(f"time to {t:g} dB, {s} px / {sizes[0]} px", "x",
+                 *(None if r is None else size_ratio(r, s, sizes[0], t) for r in (base, head)), lower_is_better=True)
+            for s in sizes[1:]]
 
 
 def _row(label: str, unit: str, a: float | None, b: float | None, lower_is_better: bool) -> dict:

@@ -1,7 +1,7 @@
 """How stage-1 cost grows with the image size (issue 18 item 4): per size, the scene loaded at that long side is
 trained for a fixed budget, and the time to each target test PSNR (25 / 30 dB unless told: a real capture may
-never reach 30), steps/s early and later, samples per ray,
-the time of one full-view render, the closing evaluation and the peak RSS are measured. Each size runs in a
+never reach 30), steps/s early and later, samples per ray, the time of one full-view render, the closing
+evaluation and the peak RSS are measured. Each size runs in a
 fresh process (spawned), so its peak RSS is its own. Returns dicts; the driver is app/bench/scale.py.
 """
 from __future__ import annotations
@@ -28,6 +28,14 @@ PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EV
 def goal_target(result: dict | None) -> float:
     """The PSNR (dB) a run's size ratios are read at: the highest of its targets (30 dB unless it was told others)."""
     return max((result or {}).get("targets") or TARGETS)
+
+
+def size_ratio(result: dict, size: int, smallest: int, target: float) -> float | None:
+    """Seconds to `target` dB at `size` over those at `smallest` (issue 33: at most 2x at 256 and 4x at 512 px of
+    128); None where either size did not reach it."""
+    seconds = {e.get("size"): e.get(f"seconds_to_{target:g}") for e in result.get("sizes", [])}
+    lo, hi = seconds.get(smallest), seconds.get(size)
+    return hi / lo if lo and hi is not None else None
 
 
 def _peak_rss_mb() -> float:
@@ -68,8 +76,9 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
                  early_seconds: float = EARLY_SECONDS, early_max_samples: int | None = None,
                  targets: tuple[float, ...] = TARGETS) -> dict:
     """Train the scene loaded at long side `size` for `seconds` (evaluation excluded) and measure it; one
-    entry of the `sizes` list (see the module docstring), with seconds_to_<t> for each of `targets` (dB). `early_max_samples` overrides TrainConfig's (0 = the
-    image's sample budget from the first step, as before coarse-to-fine marching)."""
+    entry of the `sizes` list (see the module docstring), with seconds_to_<t> for each of `targets` (dB).
+    `early_max_samples` overrides TrainConfig's (0 = the image's sample budget from the first step, as before
+    coarse-to-fine marching)."""
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
