@@ -62,8 +62,11 @@ def threads(n: int | None) -> Iterator[None]:
     """Run the calling thread's CPU work (torch ops and our native kernels) on at most `n` threads, restoring its
     count after; None leaves it. torch's count is per calling thread, so other threads' work is not touched."""
     before = torch.get_num_threads()
-    if n is not None:
-        torch.set_num_threads(max(1, min(int(n), before)))
+    want = before if n is None else max(1, min(int(n), before))
+    if want == before:  # nothing to change: no set/restore pair on every render and step
+        yield
+        return
+    torch.set_num_threads(want)
     try:
         yield
     finally:
