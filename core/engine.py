@@ -41,6 +41,12 @@ VOTE_SIDE = 128  # long side of the training views rendered to vote on a free-vi
 # one round, so a render on fewer threads (the worker's while the user navigates) takes smaller rounds.
 INTERACTIVE_CHUNK_PER_THREAD = 1 << 15
 INTERACTIVE_CHUNK_CUDA = 1 << 16  # a GPU's rounds do not depend on the CPU threads
+# Early ray termination of what Engine.render draws (the viewport, PNG and video exports: 8-bit colour). A ray
+# stopped at transmittance T changes its colour by at most T (samples behind it, against the background), so
+# below half an 8-bit level (1/510) nothing on screen changes; training keeps TrainConfig.t_threshold (1e-4). On
+# the fox capture (contracted room) a 288x512 frame: 33.8 -> 30.8 samples a ray, 3.59 -> 3.03 s, largest change
+# 0.2 of a level.
+DISPLAY_T_THRESHOLD = 1e-3
 
 
 def editor_train_config(device: torch.device) -> TrainConfig:
@@ -244,6 +250,7 @@ class Engine:
             scale = self._max_scale(cameras)
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
                              max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
+                             t_threshold=DISPLAY_T_THRESHOLD,
                              feature_first_surface=FIRST_SURFACE)  # as the selection's views read it
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
             opts.chunk = (INTERACTIVE_CHUNK_CUDA if self.device.type == "cuda"

@@ -31,6 +31,35 @@ def test_train_then_render_at_scale(engine):
     assert half["rgb"].shape == (12, 12, 3)
 
 
+def test_drawn_views_stop_rays_within_half_an_8_bit_level(engine, monkeypatch):
+    """Engine.render (the viewport and the PNG and video exports) stops a ray once its transmittance falls below
+    DISPLAY_T_THRESHOLD, under half an 8-bit level: its colour moves by at most that much from a ray marched to
+    its end."""
+    import torch
+
+    from repaint_nerf.core import engine as engine_mod
+    from repaint_nerf.core.render.renderer import RenderOptions, render_camera
+
+    assert engine_mod.DISPLAY_T_THRESHOLD < 0.5 / 255
+    seen = []
+
+    def spy(field, grid, cameras, i, opts, **kw):
+        seen.append(opts.t_threshold)
+        return render_camera(field, grid, cameras, i, opts, **kw)
+
+    monkeypatch.setattr(engine_mod, "render_camera", spy)
+    engine.train_for(0.5)
+    cams = engine.info()["cameras"][0]
+    drawn = engine.render(cams, outputs=("rgb",))["rgb"]
+    assert seen == [engine_mod.DISPLAY_T_THRESHOLD]
+    opts = RenderOptions(outputs=("rgb",), background=engine.trainer.eval_background(),
+                         max_samples=int(engine.trainer.cfg.max_samples), t_threshold=0.0)
+    with torch.no_grad():
+        full = render_camera(engine.field.eval(), engine.grid, cams.to(engine.device), 0, opts)["rgb"].numpy()
+    engine.field.train()
+    assert np.abs(drawn - full).max() <= engine_mod.DISPLAY_T_THRESHOLD + 1e-5
+
+
 def test_cancel_returns_none(engine):
     cams = engine.info()["cameras"][0]
     assert engine.render(cams, cancel=lambda: True) is None
