@@ -44,8 +44,8 @@ INTERACTIVE_CHUNK_CUDA = 1 << 16  # a GPU's rounds do not depend on the CPU thre
 # Early ray termination of what Engine.render draws (the viewport, PNG and video exports: 8-bit colour). A ray
 # stopped at transmittance T changes its colour by at most T (samples behind it, against the background), so
 # below half an 8-bit level (1/510) nothing on screen changes; training keeps TrainConfig.t_threshold (1e-4). On
-# the fox capture (contracted room) a 288x512 frame: 33.8 -> 30.8 samples a ray, 3.59 -> 3.03 s, largest change
-# 0.2 of a level.
+# the fox capture (contracted room) a 288x512 frame: 33.8 -> 30.8 samples a ray, 4.05 -> 3.65 s (medians of 3
+# alternating pairs), largest change 0.25 of a level.
 DISPLAY_T_THRESHOLD = 1e-3
 
 
