@@ -34,6 +34,11 @@ RENDER_TARGET_MS = 35.0
 # at p99 against the goal of 16.7. Training, commands and the selection tool's feature frames (a patch waits for
 # them) keep every thread (None: torch's count).
 NAV_RENDER_THREADS: int | None = 1
+# ...unless one thread cannot hold the target: a navigating frame at the scale floor that still took this many times
+# the target (a real capture's rays, 30-39 samples through a contracted room, marched in PyTorch: on the fox a move
+# took 263 ms on one thread against 122 on two, a drag 4.8 against 10.8 frames per second) sends the next ones to
+# every thread, until a frame on every thread takes under 1/NAV_COSTLY_RATIO of the target (one thread would hold it)
+NAV_COSTLY_RATIO = 1.5
 
 
 @dataclass
@@ -108,6 +113,7 @@ class Worker:
         self.rest_s = rest_s
         self.nav_hold_s = max(nav_hold_s, rest_s)  # training waits for the user to stop navigating (NAV_HOLD_S)
         self.nav_threads = nav_threads  # NAV_RENDER_THREADS
+        self.nav_costly = False  # navigating frames miss the target on nav_threads even at the floor: use every thread
         self.preview_interval_s = preview_interval_s
         self.training = True
         self.held = False  # the user is mid-gesture (a patch drag): no new training step starts
@@ -267,10 +273,14 @@ class Worker:
         # the next left the viewport frozen until the mouse stopped. Refinements of a resting view are long: a
         # move, a command or a gesture cancels them.
         cancel = self._stop.is_set if first else self._stale(req.serial)
+        navigating = self._navigating() and "feature" not in req.outputs
+        narrow = navigating and not self.nav_costly and self.nav_threads is not None
         t0 = time.perf_counter()
-        with threads(self.nav_threads if self._navigating() and "feature" not in req.outputs else None):
+        with threads(self.nav_threads if narrow else None):
             data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
         ms = (time.perf_counter() - t0) * 1000.0
+        if first and navigating and data is not None:
+            self._judge_nav_cost(ms, scale, narrow)
         self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request, a command or a gesture
             self.cancelled += 1
@@ -287,6 +297,15 @@ class Worker:
         self._served = (req.serial, scale)
         self._publish(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
         return True
+
+    def _judge_nav_cost(self, ms: float, scale: float, narrow: bool) -> None:
+        """Switch navigating frames to every thread when nav_threads cannot hold the target at the scale floor,
+        and back once every thread renders well under it (NAV_COSTLY_RATIO)."""
+        c = self.controller
+        if narrow and scale <= c.min_scale and ms > NAV_COSTLY_RATIO * c.target_ms:
+            self.nav_costly = True
+        elif not narrow and self.nav_costly and ms * NAV_COSTLY_RATIO < c.target_ms:
+            self.nav_costly = False
 
     def _navigating(self) -> bool:
         """A view was requested within nav_hold_s: the user may move again, so no training step starts."""

@@ -140,6 +140,58 @@ def test_renders_of_a_navigated_view_leave_the_ui_a_core(monkeypatch):
     assert count[0] == 2
 
 
+class TimedEngine(ThreadEngine):
+    """Renders take `delay` seconds, all at once (no rounds)."""
+
+    def __init__(self, delay: float) -> None:
+        super().__init__()
+        self.delay = delay
+
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+        import torch
+
+        self.render_threads.append((scale, torch.get_num_threads()))
+        time.sleep(self.delay)
+        return {"rgb": np.zeros((2, 2, 3), np.float32)}
+
+    def can_train(self) -> bool:
+        return False
+
+
+def test_costly_rays_navigate_on_every_thread(monkeypatch):
+    """A view whose one-thread frames miss the target even at the scale floor (a real capture's contracted room)
+    moves on every thread; once every thread renders well under the target, navigation narrows again."""
+    import torch
+
+    from repaint_nerf.app.resolution import MIN_SCALE
+
+    count = [2]
+    monkeypatch.setattr(torch, "get_num_threads", lambda: count[0])
+    monkeypatch.setattr(torch, "set_num_threads", lambda n: count.__setitem__(0, n))
+    engine = TimedEngine(delay=0.06)  # 3x a 20 ms target
+    worker = Worker(engine, target_ms=20.0, rest_s=10.0, nav_hold_s=5.0, nav_threads=1).start()
+
+    def moves(n: int) -> list:
+        for i in range(n):
+            before = len(engine.render_threads)
+            worker.request_render("a", key=(len(engine.render_threads), i))
+            _frames(worker, lambda fs: len(fs) >= 1)
+            assert len(engine.render_threads) == before + 1
+        return engine.render_threads[-n:]
+
+    try:
+        slow = moves(6)
+        engine.delay = 0.005  # the field got cheap (it trained): a quarter of the target on every thread
+        fast = moves(3)
+    finally:
+        worker.stop()
+    floor = next(i for i, (sc, _) in enumerate(slow) if sc <= MIN_SCALE)
+    assert all(n == 1 for _, n in slow[:floor + 1])  # one thread until a frame at the floor misses the target
+    assert slow[-1][1] == 2 and worker.nav_threads == 1
+    assert fast[0][1] == 2 and fast[-1][1] == 1
+    assert count[0] == 2
+
+
 def test_feature_frames_keep_every_thread(monkeypatch):
     """The selection tool's views carry features, which a patch waits for: they render on every thread."""
     import torch
