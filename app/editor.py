@@ -93,6 +93,7 @@ class EditorApp:
         self.state.loading = True
         self.state.has_selection = False
         self.viewport.upload_similarity(None)
+        self.worker.forget_costs()
         # the Scene panel's teacher; None (untouched): the engine keeps the workspace's choice, as before
         self.worker.call(self.engine.load, path, self.state.workspace, feature_model=self.state.feature_model)
 

@@ -16,7 +16,7 @@ from typing import Any, Callable
 
 from repaint_nerf.app.feature_view import FeatureProjector
 from repaint_nerf.app.resolution import DynamicResolution
-from repaint_nerf.core.device import threads
+from repaint_nerf.core.device import thread_count, threads
 from repaint_nerf.core.errors import UserError, WorkspaceDamaged
 
 
@@ -300,12 +300,24 @@ class Worker:
 
     def _judge_nav_cost(self, ms: float, scale: float, narrow: bool) -> None:
         """Switch navigating frames to every thread when nav_threads cannot hold the target at the scale floor,
-        and back once every thread renders well under it (NAV_COSTLY_RATIO)."""
+        and back once a frame on every thread says nav_threads would hold it there with room (NAV_COSTLY_RATIO).
+
+        The controller raises the scale until frames take about the target, so a frame's own time never falls
+        well under it: the release compares the frame's cost scaled to the floor's pixels and to one thread
+        (as if the other threads did nothing), a conservative estimate of what a narrow frame at the floor costs."""
         c = self.controller
         if narrow and scale <= c.min_scale and ms > NAV_COSTLY_RATIO * c.target_ms:
             self.nav_costly = True
-        elif not narrow and self.nav_costly and ms * NAV_COSTLY_RATIO < c.target_ms:
-            self.nav_costly = False
+        elif not narrow and self.nav_costly:
+            wide = max(1, thread_count())
+            narrow_threads = max(1, min(self.nav_threads or wide, wide))
+            at_floor = ms * min(1.0, (c.min_scale / max(scale, 1e-9)) ** 2) * wide / narrow_threads
+            if at_floor * NAV_COSTLY_RATIO < c.target_ms:
+                self.nav_costly = False
+
+    def forget_costs(self) -> None:
+        """A new scene opens: what its rays cost is unknown again, so navigation starts on nav_threads."""
+        self.nav_costly = False
 
     def _navigating(self) -> bool:
         """A view was requested within nav_hold_s: the user may move again, so no training step starts."""

@@ -57,6 +57,11 @@ def synchronize(device: torch.device | str | None = None) -> None:
         torch.cuda.synchronize(torch.device(device or get_device()))
 
 
+def thread_count() -> int:
+    """How many CPU threads the calling thread's torch ops (and our native kernels) use."""
+    return torch.get_num_threads()
+
+
 @contextmanager
 def threads(n: int | None) -> Iterator[None]:
     """Run the calling thread's CPU work (torch ops and our native kernels) on at most `n` threads, restoring its

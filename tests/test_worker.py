@@ -192,6 +192,27 @@ def test_costly_rays_navigate_on_every_thread(monkeypatch):
     assert count[0] == 2
 
 
+def test_costly_navigation_ends_when_one_thread_would_hold_the_target(monkeypatch):
+    """The controller keeps every frame near the target, so the release judges a frame's cost at the floor's pixels
+    on one thread; a frame at target cost far above the floor ends the costly state, one just above it does not,
+    and a new scene starts narrow."""
+    import torch
+
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
+    worker = Worker(ThreadEngine(), target_ms=20.0, nav_threads=1)
+    floor = worker.controller.min_scale
+    worker._judge_nav_cost(40.0, floor, narrow=True)  # 2x the target on one thread at the floor
+    assert worker.nav_costly
+    worker._judge_nav_cost(20.0, 1.1 * floor, narrow=False)  # on one thread at the floor: ~33 ms
+    assert worker.nav_costly
+    worker._judge_nav_cost(20.0, 3.0 * floor, narrow=False)  # ~4.4 ms
+    assert not worker.nav_costly
+    worker._judge_nav_cost(40.0, floor, narrow=True)
+    assert worker.nav_costly
+    worker.forget_costs()
+    assert not worker.nav_costly
+
+
 def test_feature_frames_keep_every_thread(monkeypatch):
     """The selection tool's views carry features, which a patch waits for: they render on every thread."""
     import torch
