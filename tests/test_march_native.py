@@ -4,6 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from repaint_nerf.core.field.contraction import CONE, ContractWarp, NDCWarp, contract
 from repaint_nerf.core.render import march_native
 from repaint_nerf.core.render.analytic import SphereField
 from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
@@ -127,15 +128,65 @@ def test_training_pass_matches_the_pytorch_path(monkeypatch):
     torch.testing.assert_close(native["rgb"], plain["rgb"], atol=2e-4, rtol=0)
 
 
-def test_warped_grids_and_cuda_tensors_take_the_pytorch_path():
+def test_unknown_warps_and_other_tensors_take_the_pytorch_path():
     field, grid, cams = _sphere_scene()
     o, d = _rays(10, seed=1)
     plan = plan_rays(o, d, *cube(1.0), 0.01, 256)
     assert march_native.usable(o, plan, grid)
     assert not march_native.usable(o, plan, None)
     assert not march_native.usable(o.double(), plan, grid)
-    cone = plan_rays(o, d, *cube(1.0), 0.01, 256, cone=0.01)
-    assert not march_native.usable(o, cone, grid)
+    assert march_native.usable(o, plan_rays(o, d, *cube(1.0), 0.01, 256, cone=0.01), grid)
+    assert march_native.usable(o, plan, OccupancyGrid(16, 1, warp=ContractWarp(), march_extent=4.0, device="cpu"))
+    assert not march_native.usable(o, plan, OccupancyGrid(16, 1, warp=lambda x: x, march_extent=4.0, device="cpu"))
+
+
+def _warped_grid(warp, resolution: int, seed: int) -> OccupancyGrid:
+    grid = OccupancyGrid(resolution, 1, warp=warp, march_extent=16.0, device="cpu")
+    grid.occupied = _grid(resolution, 1, seed).occupied
+    grid._version += 1
+    return grid
+
+
+@pytest.mark.parametrize("kind", ["contract", "ndc"])
+def test_warped_native_march_emits_the_reference_samples(kind):
+    """Contracted and NDC grids with cone steps: the kernel's jumps (exact for NDC and the contraction's core, a
+    Lipschitz bound past it) skip no occupied step the PyTorch path keeps. Step distances agree to float rounding
+    (the kernel takes the cone's powers in double)."""
+    o, d = _rays(3000, seed=5)
+    if kind == "contract":
+        warp = ContractWarp()
+        o = 0.35 * o  # cameras inside the unit cube, rays out to the far shells
+    else:  # a reference camera at the origin looking down -z; rays start in front of it, looking forward
+        warp = NDCWarp(torch.eye(4).numpy(), 1.0, 1.0, 2.0, 2.0, 0.3)
+        o = 0.2 * o - torch.tensor([0.0, 0.0, 0.5])
+        d = torch.nn.functional.normalize(d * torch.tensor([0.4, 0.4, 1.0]) - torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    grid = _warped_grid(warp, 32, seed=4)
+    step = default_step(1.0, 256)
+    plan = plan_rays(o, d, *cube(16.0), step, 1024, 0.0, max(CONE, step))
+    assert march_native.usable(o, plan, grid), march_native.LIBRARY.failed
+    ref = _reference(o, d, plan, grid)
+    assert len(ref) > 2000 and int(plan.n_steps.sum()) > 20 * len(ref)  # mostly empty steps to skip
+    for take in (1, 5, 1 << 20):
+        got = _native_all(o, d, plan, grid, take)
+        assert len(got) == len(ref) and torch.equal(got.ray, ref.ray)
+        for f in ("t_start", "t_end", "t", "x"):
+            torch.testing.assert_close(getattr(got, f), getattr(ref, f), atol=1e-5, rtol=1e-5)
+
+
+def test_contraction_moves_points_no_faster_than_the_marchers_bound():
+    """march.c skips past the contraction's core by |J|_inf <= 2/n - 1.5/n^2 at |x|_inf = n >= 1 (at most 2/3):
+    the Jacobian's largest row sum, checked by autograd at random points and near the faces' corners."""
+    g = torch.Generator().manual_seed(0)
+    dirs = torch.nn.functional.normalize(torch.randn(4000, 3, generator=g), dim=-1)
+    n = 1.0 + 30.0 * torch.rand(4000, 1, generator=g) ** 2
+    x = dirs / dirs.abs().amax(-1, keepdim=True) * n  # |x|_inf = n
+    x[:100, 0], x[:100, 1] = n[:100, 0], -0.999 * n[:100, 0]  # edges: two axes nearly dominant
+    jac = torch.func.vmap(torch.func.jacrev(lambda p: contract(p[None], "inf")[0]))(x)
+    rows = jac.abs().sum(-1).amax(-1)
+    m = x.abs().amax(-1)
+    bound = 2.0 / m - 1.5 / m ** 2
+    assert bool((rows <= bound + 1e-5).all()) and float(rows.max()) <= 2.0 / 3.0 + 1e-5
+    assert float((rows / bound).max()) > 0.95  # the bound is reached: it is not loose
 
 
 def test_build_failure_falls_back_to_the_pytorch_path(monkeypatch, tmp_path):

@@ -3,7 +3,8 @@
 The PyTorch path (raymarch.next_segments + expand_segments) tests coarse segments, expands them into
 steps and tests each step: about twenty tensor operations per round, a third of a 128x128 render on a
 2-core CPU. The kernel walks each ray once, crossing empty cells in one jump, and emits the same samples.
-It serves bounded fields on the CPU (uniform steps, no space warp); everything else takes the PyTorch path.
+It serves bounded fields and warped ones (contraction, NDC; cone steps) on the CPU; CUDA tensors take the PyTorch
+path.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from repaint_nerf.core.field.contraction import ContractWarp, NDCWarp
 from repaint_nerf.core.native import NativeLibrary
 from repaint_nerf.core.render.occupancy import OccupancyGrid
 from repaint_nerf.core.render.raymarch import RayPlan, Samples
@@ -20,7 +22,7 @@ from repaint_nerf.core.render.raymarch import RayPlan, Samples
 
 def _bind(lib: ctypes.CDLL) -> ctypes.CDLL:
     p, i64, i32, u64, f32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_uint64, ctypes.c_float
-    lib.mr_march.argtypes = [p, p, p, p, p, f32, p, i64, p, i32, p, p, i32, i32, i32, f32, i32, u64,
+    lib.mr_march.argtypes = [p, p, p, p, p, f32, f32, p, i64, p, i32, p, p, i32, i32, i32, f32, i32, p, i32, u64,
                              p, p, p, p, p, p, i32]
     lib.mr_march.restype = i64
     return lib
@@ -31,9 +33,21 @@ BLOCK = 4  # cells per axis of the coarse level that crosses large empty regions
 LIBRARY = NativeLibrary(Path(__file__).with_name("csrc") / "march.c", _bind, "ray-marching")
 
 
+def _warp_args(warp) -> tuple[int, Tensor] | None:
+    """(march.c's warp kind, its parameters) for a grid's warp; None for a warp the kernel does not know."""
+    if warp is None:
+        return 0, torch.zeros(15)
+    if isinstance(warp, ContractWarp):
+        return 1, torch.zeros(15)
+    if isinstance(warp, NDCWarp):
+        w2c = warp.w2c.float()
+        return 2, torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], torch.tensor([warp.ax, warp.ay, warp.near])])
+    return None
+
+
 def usable(origins: Tensor, plan: RayPlan, grid: OccupancyGrid | None) -> bool:
-    """Whether the kernel can march these rays: CPU float32, a grid without warp, uniform steps, a built library."""
-    return (grid is not None and grid.warp is None and plan.cone <= 0.0 and grid.cascades <= MAX_CASCADES
+    """Whether the kernel can march these rays: CPU float32, a grid it knows the warp of, a built library."""
+    return (grid is not None and _warp_args(grid.warp) is not None and grid.cascades <= MAX_CASCADES
             and origins.device.type == "cpu"
             and grid.device.type == "cpu" and origins.dtype == torch.float32 and LIBRARY.get() is not None)
 
@@ -59,11 +73,14 @@ def march(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: OccupancyGrid, ids
     factor = BLOCK if grid.resolution % BLOCK == 0 and grid.resolution > BLOCK else 1
     coarse = grid.blocks(factor).contiguous() if factor > 1 else occ
     assert next_k.is_contiguous() and next_k.dtype == torch.long
+    kind, params = _warp_args(grid.warp)
+    params = params.float().contiguous()
     total = LIBRARY.get().mr_march(
         o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), n.data_ptr(), float(plan.step),
-        idc.data_ptr(), n_ids, next_k.data_ptr(), take, occ.data_ptr(), coarse.data_ptr(), factor,
-        grid.resolution, grid.cascades, float(grid.bound), int(bool(perturb)), seed, ray.data_ptr(), ts.data_ptr(),
-        te.data_ptr(), t.data_ptr(), x.data_ptr(), count.data_ptr(), torch.get_num_threads())
+        float(max(plan.cone, 0.0)), idc.data_ptr(), n_ids, next_k.data_ptr(), take, occ.data_ptr(), coarse.data_ptr(),
+        factor, grid.resolution, grid.cascades, float(grid.bound), kind, params.data_ptr(), int(bool(perturb)), seed,
+        ray.data_ptr(), ts.data_ptr(), te.data_ptr(), t.data_ptr(), x.data_ptr(), count.data_ptr(),
+        torch.get_num_threads())
     if total < 0:
-        raise ValueError(f"the native marcher supports 1 to 16 cascades (got {grid.cascades})")
+        raise ValueError(f"the native marcher supports 1 to 16 cascades, and one with a warp (got {grid.cascades})")
     return Samples(ray[:total], ts[:total], te[:total], t[:total], x[:total])
