@@ -131,3 +131,27 @@ def test_default_config_per_device():
     assert (cuda.levels, cuda.log2_table, cuda.finest_res) == (16, 19, 2048)
     assert cpu.log2_table < cuda.log2_table  # CPU tables stay in cache
     NGPField(FieldConfig(**{**cpu.to_dict(), "encoding_impl": "indexed"}))  # builds
+
+
+@pytest.mark.parametrize("codes", [0, 4])
+def test_directions_per_ray_give_the_per_point_colours_and_gradients(codes):
+    """The renderer's call (directions and image codes per ray, each point's ray index) computes the colour head's
+    view part once per ray: the same colours and gradients as directions repeated per point."""
+    field = _field(appearance_dim=codes, appearance_count=3 if codes else 0)
+    with torch.no_grad():  # a trained colour head and non-zero codes, so every column of the first layer matters
+        for p in field.color_net.parameters():
+            p.normal_(0.0, 0.3)
+        if field.appearance is not None:
+            field.appearance.embedding.weight.normal_()
+    ray = torch.randint(0, 7, (200,)).sort().values
+    dirs = torch.nn.functional.normalize(torch.randn(7, 3), dim=-1)
+    image = torch.randint(0, 3, (7,)) if codes else None
+    x = torch.rand(200, 3) * 2 - 1
+    per_ray = field(x, dirs, outputs=("rgb",), appearance=image, ray=ray)
+    grads_ray = torch.autograd.grad(per_ray["rgb"].square().sum(), list(field.color_net.parameters()))
+    per_point = field(x, dirs[ray], outputs=("rgb",), appearance=None if image is None else image[ray])
+    grads_point = torch.autograd.grad(per_point["rgb"].square().sum(), list(field.color_net.parameters()))
+    torch.testing.assert_close(per_ray["rgb"], per_point["rgb"], atol=1e-6, rtol=1e-5)
+    assert float(per_ray["rgb"].std()) > 0.05
+    for a, b in zip(grads_ray, grads_point):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)

@@ -57,6 +57,8 @@ class RayAppearance:
         return getattr(self.field, name)
 
     def __call__(self, x: Tensor, d: Tensor, outputs=("rgb",), ray: Tensor | None = None) -> dict[str, Tensor]:
+        if getattr(self.field, "view_per_ray", False):  # d is per ray, as the codes are
+            return self.field(x, d, outputs=outputs, appearance=self.image_of_ray, ray=ray)
         return self.field(x, d, outputs=outputs, appearance=None if ray is None else self.image_of_ray[ray])
 
 

@@ -92,6 +92,8 @@ def _mlp(n_in: int, hidden: int, n_out: int, hidden_layers: int = 1) -> nn.Seque
 class NGPField(nn.Module):
     """Instant-NGP style field over the cube [-bound, bound]^3: sigma, view-dependent rgb, optional features."""
 
+    view_per_ray = True  # forward takes directions per ray with each point's `ray` (the renderer's fast call)
+
     def __init__(self, cfg: FieldConfig):
         super().__init__()
         from repaint_nerf.core.errors import UserError
@@ -140,9 +142,11 @@ class NGPField(nn.Module):
         return self.act(pre) * self.inside(x).to(pre.dtype)
 
     def forward(self, x: Tensor, d: Tensor | None = None, outputs=("rgb",),
-                appearance: Tensor | None = None) -> dict[str, Tensor]:
+                appearance: Tensor | None = None, ray: Tensor | None = None) -> dict[str, Tensor]:
         """Evaluate at points x (N, 3) seen along directions d (N, 3): 'sigma' always, 'rgb'/'feature' when asked.
-        `appearance` (N,) picks each point's image code (fields with codes; None: the mean code)."""
+        `appearance` (N,) picks each point's image code (fields with codes; None: the mean code).
+        With `ray` (N,) long, d (R, 3) and appearance (R,) are per ray and point i lies on ray[i]: what depends
+        on the view alone is then computed once per ray, not once per point (a renderer's R is ~30x smaller)."""
         from repaint_nerf.core.errors import UserError
 
         unknown = set(outputs) - set(OUTPUTS)
@@ -156,16 +160,26 @@ class NGPField(nn.Module):
         if "rgb" in outputs:
             if d is None:
                 raise UserError("the field needs view directions to compute 'rgb'", hint="pass d (N, 3)")
-            parts = [out_t[:, 1:], sh_encode(d, self.cfg.sh_degree)]
-            if self.appearance is not None:
-                parts.append(self.appearance(appearance, x.shape[0]).to(out_t.dtype))
-            result["rgb"] = torch.sigmoid(self.color_net(torch.cat(parts, -1)))
+            result["rgb"] = torch.sigmoid(self.color_net[1:](self._color_input(out_t, d, appearance, ray)))
         if "feature" in outputs:
             if self.feature_net is None:
                 raise UserError("this field has no feature head", hint="set feature_dim > 0 in the field config")
             src = self.feature_grid(x) if self.feature_grid is not None else h
             result["feature"] = self.feature_net(src)
         return result
+
+    def _color_input(self, out_t: Tensor, d: Tensor, appearance: Tensor | None, ray: Tensor | None) -> Tensor:
+        """The colour head's first layer on [geo features, SH(d), appearance code], split by its columns: the view
+        part (SH, code, bias) per row of d, gathered by `ray` when d is per ray, plus the geo part per point."""
+        first: nn.Linear = self.color_net[0]
+        g, k = self.cfg.geo_feat_dim, sh_dim(self.cfg.sh_degree)
+        w = first.weight
+        view = torch.addmm(first.bias, sh_encode(d, self.cfg.sh_degree).to(w.dtype), w[:, g:g + k].t())
+        if self.appearance is not None:
+            view = view + self.appearance(appearance, d.shape[0]).to(w.dtype) @ w[:, g + k:].t()
+        if ray is not None:
+            view = view.index_select(0, ray)
+        return torch.addmm(view, out_t[:, 1:], w[:, :g].t())
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: 'grid' (hash table), 'mlp' (density + colour), 'feature' (feature head)."""

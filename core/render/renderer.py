@@ -137,7 +137,10 @@ def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, di
     """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked."""
     if not heads:
         return field.density(s.x).reshape(-1), {}
-    out = field(s.x, dirs[s.ray], outputs=heads, **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
+    if getattr(field, "view_per_ray", False):  # the view-dependent part once per ray (core.field.field)
+        out = field(s.x, dirs, outputs=heads, ray=s.ray)
+    else:
+        out = field(s.x, dirs[s.ray], outputs=heads, **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
     return out["sigma"].reshape(-1), {h: out[h] for h in heads}
 
 
