@@ -8,4 +8,6 @@ Set it to 0 to opt out; where the kernel's THP mode is 'never' it changes nothin
 """
 import os as _os
 
-_os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
+THP_ENV = "THP_MEM_ALLOC_ENABLE"
+THP_FROM_USER = THP_ENV in _os.environ  # else ours: a checkout benchmarked beside this one must not inherit it
+_os.environ.setdefault(THP_ENV, "1")

@@ -83,6 +83,19 @@ def test_checkout_runs_its_own_code(tmp_path):
     assert Path(probe.stdout.strip()).resolve() == (ROOT / "core" / "__init__.py").resolve()
 
 
+def test_a_checkout_does_not_inherit_our_allocator_setting(tmp_path, monkeypatch):
+    """core sets PyTorch's huge-page switch for its own process; the base side of a comparison runs with its own
+    settings, unless the user set the switch."""
+    import repaint_nerf.core as core
+    from repaint_nerf.app.bench.compare import command_for
+
+    monkeypatch.setenv(core.THP_ENV, "1")
+    monkeypatch.setattr(core, "THP_FROM_USER", False)
+    assert core.THP_ENV not in command_for(ROOT, tmp_path)[1]
+    monkeypatch.setattr(core, "THP_FROM_USER", True)
+    assert command_for(ROOT, tmp_path)[1][core.THP_ENV] == "1"
+
+
 def test_unknown_ref_is_a_clear_error(tmp_path):
     from repaint_nerf.app.cli import main
 

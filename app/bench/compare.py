@@ -66,7 +66,11 @@ def command_for(folder: Path, scratch: Path) -> tuple[list[str], dict]:
     """The command prefix and environment that run `repaint-nerf` from a checkout with this interpreter: a
     package folder linking its core/, app/, ... as repaint_nerf.* first on the path (builds before the
     repaint_nerf package name imported them as top-level core and app)."""
+    import repaint_nerf.core as core
+
     env = dict(os.environ)
+    if not core.THP_FROM_USER:  # each checkout sets (or not) its own allocator settings
+        env.pop(core.THP_ENV, None)
     if "repaint_nerf" in (folder / "app" / "cli.py").read_text(encoding="utf-8"):
         shim = scratch / f"shim-{abs(hash(str(folder)))}" / "repaint_nerf"
         shim.mkdir(parents=True, exist_ok=True)
