@@ -155,3 +155,34 @@ def test_directions_per_ray_give_the_per_point_colours_and_gradients(codes):
     assert float(per_ray["rgb"].std()) > 0.05
     for a, b in zip(grads_ray, grads_point):
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+
+
+def test_renders_through_directions_per_ray_match_per_point(monkeypatch):
+    """The renderer passes each round's rays with samples (and their image codes) once: the same image and
+    gradients as the per-point call."""
+    from repaint_nerf.core.render.renderer import RenderOptions, render_rays
+
+    field = _field(appearance_dim=4, appearance_count=3)
+    with torch.no_grad():
+        for p in field.color_net.parameters():
+            p.normal_(0.0, 0.3)
+        field.appearance.embedding.weight.normal_()
+        field.grid.table.normal_(0.0, 1.0)
+    g = torch.Generator().manual_seed(1)
+    o = torch.tensor([0.0, 0.0, -2.5]).expand(300, 3)
+    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    image = torch.randint(0, 3, (300,), generator=g)
+    results = []
+    for per_ray in (True, False):
+        monkeypatch.setattr(NGPField, "view_per_ray", per_ray)
+        for strategy in ("rounds", "filter"):
+            opts = RenderOptions(outputs=("rgb",), max_samples=128, appearance=image, strategy=strategy, chunk=4096)
+            out = render_rays(field, None, o, d, opts)
+            grad = torch.autograd.grad(out["rgb"].sum(), field.appearance.embedding.weight)[0] \
+                if strategy == "filter" else None
+            results.append((out["rgb"].detach(), grad))
+    for (a, ga), (b, gb) in zip(results[:2], results[2:]):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+        if ga is not None:
+            torch.testing.assert_close(ga, gb, atol=1e-4, rtol=1e-3)
+    assert float(results[0][0].std()) > 0.02

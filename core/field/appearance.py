@@ -56,6 +56,10 @@ class RayAppearance:
     def __getattr__(self, name):
         return getattr(self.field, name)
 
+    def rows(self, rays: Tensor) -> "RayAppearance":
+        """The field seen through rays `rays` of this one only (the renderer's rays with samples in a round)."""
+        return RayAppearance(self.field, self.image_of_ray[rays])
+
     def __call__(self, x: Tensor, d: Tensor, outputs=("rgb",), ray: Tensor | None = None) -> dict[str, Tensor]:
         if getattr(self.field, "view_per_ray", False):  # d is per ray, as the codes are
             return self.field(x, d, outputs=outputs, appearance=self.image_of_ray, ray=ray)

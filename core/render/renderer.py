@@ -18,7 +18,7 @@ from torch import Tensor
 
 from repaint_nerf.core.device import synchronize
 from repaint_nerf.core.errors import UserError
-from repaint_nerf.core.field.appearance import with_ray_appearance
+from repaint_nerf.core.field.appearance import RayAppearance, with_ray_appearance
 from repaint_nerf.core.render import march_native
 from repaint_nerf.core.render.composite import (apply_background, composite, distortion, optical_depth, segment_sum,
                                                 transmittance)
@@ -137,8 +137,10 @@ def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, di
     """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked."""
     if not heads:
         return field.density(s.x).reshape(-1), {}
-    if getattr(field, "view_per_ray", False):  # the view-dependent part once per ray (core.field.field)
-        out = field(s.x, dirs, outputs=heads, ray=s.ray)
+    if getattr(field, "view_per_ray", False):  # the view-dependent part once per ray with samples here
+        rays, local = torch.unique_consecutive(s.ray, return_inverse=True)  # packed: sorted by ray
+        fld = field.rows(rays) if isinstance(field, RayAppearance) else field
+        out = fld(s.x, dirs[rays], outputs=heads, ray=local)
     else:
         out = field(s.x, dirs[s.ray], outputs=heads, **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
     return out["sigma"].reshape(-1), {h: out[h] for h in heads}
