@@ -54,26 +54,61 @@ static inline float corner_weight(const float *f, int corner) {
 
 int hg_max_features(void) { return MAX_F; }
 
+/* One point's encoding; `feats` is a compile-time constant where the caller passes one (the common 2), so the
+ * feature loops unroll and the accumulators stay in registers. The sums keep the generic order (bit-identical). */
+static inline __attribute__((always_inline)) void forward_point(
+        const float *x, const float *table, const int32_t feats, int32_t levels, const int32_t *res,
+        const int32_t *dense, const int64_t *offsets, uint32_t mask, float bound, float *o) {
+    float u[3];
+    unit_coords(x, bound, u);
+    for (int32_t l = 0; l < levels; l++) {
+        uint32_t c[3];
+        float f[3], acc[MAX_F];
+        cell_frac(u, res[l], c, f);
+        for (int32_t k = 0; k < feats; k++) acc[k] = 0.0f;
+        for (int corner = 0; corner < 8; corner++) {
+            const float w = corner_weight(f, corner);
+            const float *t = table + corner_row(c, corner, res[l], dense[l], mask, offsets[l]) * feats;
+            for (int32_t k = 0; k < feats; k++) acc[k] += w * t[k];
+        }
+        for (int32_t k = 0; k < feats; k++) o[l * feats + k] = acc[k];
+    }
+}
+
 void hg_forward(const float *x, int64_t n, const float *table, int32_t feats, int32_t levels, const int32_t *res,
                 const int32_t *dense, const int64_t *offsets, uint32_t mask, float bound, float *out,
                 int32_t threads) {
     const int64_t stride = (int64_t)levels * feats;
+    if (feats == 2) {
 #pragma omp parallel for schedule(static) num_threads(threads)
+        for (int64_t i = 0; i < n; i++)
+            forward_point(x + 3 * i, table, 2, levels, res, dense, offsets, mask, bound, out + i * stride);
+    } else {
+#pragma omp parallel for schedule(static) num_threads(threads)
+        for (int64_t i = 0; i < n; i++)
+            forward_point(x + 3 * i, table, feats, levels, res, dense, offsets, mask, bound, out + i * stride);
+    }
+}
+
+/* One level's table gradient from all points (one thread owns the level's rows); `feats` as in forward_point. */
+static inline __attribute__((always_inline)) void backward_level(
+        const float *x, int64_t n, const float *grad_out, const int32_t feats, int32_t levels, int32_t l,
+        const int32_t *res, const int32_t *dense, const int64_t *offsets, uint32_t mask, float bound,
+        float *grad_table) {
+    const int64_t stride = (int64_t)levels * feats;
     for (int64_t i = 0; i < n; i++) {
-        float u[3];
+        const float *g = grad_out + i * stride + l * feats;
+        int any = 0;
+        for (int32_t k = 0; k < feats; k++) any |= (g[k] != 0.0f);
+        if (!any) continue;
+        float u[3], f[3];
+        uint32_t c[3];
         unit_coords(x + 3 * i, bound, u);
-        float *o = out + i * stride;
-        for (int32_t l = 0; l < levels; l++) {
-            uint32_t c[3];
-            float f[3], acc[MAX_F];
-            cell_frac(u, res[l], c, f);
-            for (int32_t k = 0; k < feats; k++) acc[k] = 0.0f;
-            for (int corner = 0; corner < 8; corner++) {
-                const float w = corner_weight(f, corner);
-                const float *t = table + corner_row(c, corner, res[l], dense[l], mask, offsets[l]) * feats;
-                for (int32_t k = 0; k < feats; k++) acc[k] += w * t[k];
-            }
-            for (int32_t k = 0; k < feats; k++) o[l * feats + k] = acc[k];
+        cell_frac(u, res[l], c, f);
+        for (int corner = 0; corner < 8; corner++) {
+            const float w = corner_weight(f, corner);
+            float *t = grad_table + corner_row(c, corner, res[l], dense[l], mask, offsets[l]) * feats;
+            for (int32_t k = 0; k < feats; k++) t[k] += w * g[k];
         }
     }
 }
@@ -81,23 +116,11 @@ void hg_forward(const float *x, int64_t n, const float *table, int32_t feats, in
 void hg_backward(const float *x, int64_t n, const float *grad_out, int32_t feats, int32_t levels,
                  const int32_t *res, const int32_t *dense, const int64_t *offsets, uint32_t mask, float bound,
                  float *grad_table, int32_t threads) {
-    const int64_t stride = (int64_t)levels * feats;
 #pragma omp parallel for schedule(dynamic, 1) num_threads(threads)
     for (int32_t l = levels - 1; l >= 0; l--) {  /* finest (largest) levels first balances the threads */
-        for (int64_t i = 0; i < n; i++) {
-            const float *g = grad_out + i * stride + l * feats;
-            int any = 0;
-            for (int32_t k = 0; k < feats; k++) any |= (g[k] != 0.0f);
-            if (!any) continue;
-            float u[3], f[3];
-            uint32_t c[3];
-            unit_coords(x + 3 * i, bound, u);
-            cell_frac(u, res[l], c, f);
-            for (int corner = 0; corner < 8; corner++) {
-                const float w = corner_weight(f, corner);
-                float *t = grad_table + corner_row(c, corner, res[l], dense[l], mask, offsets[l]) * feats;
-                for (int32_t k = 0; k < feats; k++) t[k] += w * g[k];
-            }
-        }
+        if (feats == 2)
+            backward_level(x, n, grad_out, 2, levels, l, res, dense, offsets, mask, bound, grad_table);
+        else
+            backward_level(x, n, grad_out, feats, levels, l, res, dense, offsets, mask, bound, grad_table);
     }
 }
