@@ -131,7 +131,7 @@ class NGPField(nn.Module):
         return float(self.cfg.warp["extent"]), float(self.cfg.warp.get("cone", 0.0))
 
     def _hidden(self, x: Tensor) -> Tensor:
-        return F.relu(self.trunk(self.grid(x)))
+        return F.relu(self.trunk(self.grid(x)), inplace=True)  # no second (N, hidden) tensor
 
     def density(self, x: Tensor) -> Tensor:
         """(N, 3) field coordinates -> (N,) sigma >= 0, 0 outside the cube. Only the density row of the trunk runs."""
