@@ -179,7 +179,7 @@ class NGPField(nn.Module):
             view = view + self.appearance(appearance, d.shape[0]).to(w.dtype) @ w[:, g + k:].t()
         if ray is not None:
             view = view.index_select(0, ray)
-        return torch.addmm(view, out_t[:, 1:], w[:, :g].t())
+        return view.addmm_(out_t[:, 1:], w[:, :g].t())  # in place: no (N, hidden) copy of the view term
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: 'grid' (hash table), 'mlp' (density + colour), 'feature' (feature head)."""
