@@ -438,6 +438,8 @@ def test_field_under_autocast_matches_fp32(dtype):
         with torch.autocast("cpu", dtype=dtype):
             out = field(x, d, outputs=("rgb",))
     except RuntimeError as exc:  # pragma: no cover - an older CPU autocast without fp16
+        if "autocast" not in str(exc):  # a dtype clash inside the field is a failure, not a missing feature
+            raise
         pytest.skip(f"CPU autocast has no {dtype}: {exc}")
     for k in ("sigma", "rgb"):
         assert torch.isfinite(out[k]).all(), k

@@ -179,7 +179,8 @@ class NGPField(nn.Module):
             view = view + self.appearance(appearance, d.shape[0]).to(w.dtype) @ w[:, g + k:].t()
         if ray is not None:
             view = view.index_select(0, ray)
-        return view.addmm_(out_t[:, 1:], w[:, :g].t())  # in place: no (N, hidden) copy of the view term
+        # in place: no (N, hidden) copy of the view term; in-place ops skip autocast, so the dtypes are made to match
+        return view.addmm_(out_t[:, 1:].to(view.dtype), w[:, :g].t().to(view.dtype))
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: 'grid' (hash table), 'mlp' (density + colour), 'feature' (feature head)."""
