@@ -35,9 +35,10 @@ RENDER_TARGET_MS = 35.0
 # them) keep every thread (None: torch's count).
 NAV_RENDER_THREADS: int | None = 1
 # ...unless one thread cannot hold the target: a navigating frame at the scale floor that still took this many times
-# the target (a real capture's rays, 30-39 samples through a contracted room, marched in PyTorch: on the fox a move
-# took 263 ms on one thread against 122 on two, a drag 4.8 against 10.8 frames per second) sends the next ones to
-# every thread, until a frame on every thread takes under 1/NAV_COSTLY_RATIO of the target (one thread would hold it)
+# the target (a real capture's rays, 30-39 samples through a contracted room: on the fox, before the native marcher
+# took warped fields, a move took 263 ms on one thread against 122 on two, a drag 4.8 against 10.8 frames per second)
+# sends the next ones to every thread, until a frame on every thread, scaled to the floor's pixels and to one thread,
+# takes under 1/NAV_COSTLY_RATIO of the target (Worker._judge_nav_cost)
 NAV_COSTLY_RATIO = 1.5
 
 
@@ -309,9 +310,8 @@ class Worker:
         if narrow and scale <= c.min_scale and ms > NAV_COSTLY_RATIO * c.target_ms:
             self.nav_costly = True
         elif not narrow and self.nav_costly:
-            wide = max(1, thread_count())
-            narrow_threads = max(1, min(self.nav_threads or wide, wide))
-            at_floor = ms * min(1.0, (c.min_scale / max(scale, 1e-9)) ** 2) * wide / narrow_threads
+            at_floor = ms * min(1.0, (c.min_scale / max(scale, 1e-9)) ** 2) * thread_count() \
+                / thread_count(self.nav_threads)
             if at_floor * NAV_COSTLY_RATIO < c.target_ms:
                 self.nav_costly = False
 

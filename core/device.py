@@ -57,17 +57,18 @@ def synchronize(device: torch.device | str | None = None) -> None:
         torch.cuda.synchronize(torch.device(device or get_device()))
 
 
-def thread_count() -> int:
-    """How many CPU threads the calling thread's torch ops (and our native kernels) use."""
-    return torch.get_num_threads()
+def thread_count(n: int | None = None) -> int:
+    """How many CPU threads the calling thread's torch ops (and our native kernels) use, or would use inside
+    `threads(n)`: at most n, at least 1."""
+    now = torch.get_num_threads()
+    return now if n is None else max(1, min(int(n), now))
 
 
 @contextmanager
 def threads(n: int | None) -> Iterator[None]:
     """Run the calling thread's CPU work (torch ops and our native kernels) on at most `n` threads, restoring its
     count after; None leaves it. torch's count is per calling thread, so other threads' work is not touched."""
-    before = torch.get_num_threads()
-    want = before if n is None else max(1, min(int(n), before))
+    before, want = torch.get_num_threads(), thread_count(n)
     if want == before:  # nothing to change: no set/restore pair on every render and step
         yield
         return

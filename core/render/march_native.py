@@ -33,21 +33,28 @@ BLOCK = 4  # cells per axis of the coarse level that crosses large empty regions
 LIBRARY = NativeLibrary(Path(__file__).with_name("csrc") / "march.c", _bind, "ray-marching")
 
 
-def _warp_args(warp) -> tuple[int, Tensor] | None:
-    """(march.c's warp kind, its parameters) for a grid's warp; None for a warp the kernel does not know."""
+_NO_WARP_PARAMS = torch.zeros(15)  # march.c reads its warp parameters for NDC only
+_WARP_KINDS = ((ContractWarp, 1), (NDCWarp, 2))  # march.c's warp kinds (0: none)
+
+
+def _warp_kind(warp) -> int | None:
+    """march.c's kind for a grid's warp; None for a warp the kernel does not know."""
     if warp is None:
-        return 0, torch.zeros(15)
-    if isinstance(warp, ContractWarp):
-        return 1, torch.zeros(15)
-    if isinstance(warp, NDCWarp):
-        w2c = warp.w2c.float()
-        return 2, torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], torch.tensor([warp.ax, warp.ay, warp.near])])
-    return None
+        return 0
+    return next((kind for cls, kind in _WARP_KINDS if isinstance(warp, cls)), None)
+
+
+def _warp_params(warp) -> Tensor:
+    """The 15 floats march.c reads for NDC: world-to-camera rotation (row-major) and translation, ax, ay, near."""
+    if not isinstance(warp, NDCWarp):
+        return _NO_WARP_PARAMS
+    w2c = warp.w2c.float()
+    return torch.cat([w2c[:3, :3].reshape(-1), w2c[:3, 3], torch.tensor([warp.ax, warp.ay, warp.near])])
 
 
 def usable(origins: Tensor, plan: RayPlan, grid: OccupancyGrid | None) -> bool:
     """Whether the kernel can march these rays: CPU float32, a grid it knows the warp of, a built library."""
-    return (grid is not None and _warp_args(grid.warp) is not None and grid.cascades <= MAX_CASCADES
+    return (grid is not None and _warp_kind(grid.warp) is not None and grid.cascades <= MAX_CASCADES
             and origins.device.type == "cpu"
             and grid.device.type == "cpu" and origins.dtype == torch.float32 and LIBRARY.get() is not None)
 
@@ -73,8 +80,7 @@ def march(origins: Tensor, dirs: Tensor, plan: RayPlan, grid: OccupancyGrid, ids
     factor = BLOCK if grid.resolution % BLOCK == 0 and grid.resolution > BLOCK else 1
     coarse = grid.blocks(factor).contiguous() if factor > 1 else occ
     assert next_k.is_contiguous() and next_k.dtype == torch.long
-    kind, params = _warp_args(grid.warp)
-    params = params.float().contiguous()
+    kind, params = _warp_kind(grid.warp), _warp_params(grid.warp)
     total = LIBRARY.get().mr_march(
         o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), n.data_ptr(), float(plan.step),
         float(max(plan.cone, 0.0)), idc.data_ptr(), n_ids, next_k.data_ptr(), take, occ.data_ptr(), coarse.data_ptr(),

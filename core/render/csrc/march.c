@@ -108,7 +108,7 @@ static inline float t_at(const Steps *s, int64_t k) {
     return (float)(s->start * exp(((double)k - (double)s->kc) * s->lg));
 }
 
-/* The last step whose end lies before distance `te` (a little short of it, for rounding). */
+/* The step whose interval holds distance `te`, less a margin for rounding: every step before it ends before te. */
 static inline float step_before(const Steps *s, float te) {
     if (!s->cone_on) return floorf((te - 1e-2f * s->step - s->tn) / s->step);
     te -= 1e-2f * MAXF(s->step, te * s->cone);
