@@ -240,6 +240,13 @@ def test_captures_table_puts_both_methods_side_by_side_and_docs_render_it(tmp_pa
                  "--json", str(out)]) == 0
     updated = json.loads(out.read_text())
     assert updated["captures"]["fox"] == fox and updated["captures"]["fern"]["nerfacto"]["longest"]["psnr"] == 18.5
+    # our side re-measured alone (a speed-up) keeps nerfacto's row; without --update a row has none
+    faster = {**ours, "at": {"60": {"psnr": 23.1, "ssim": 0.7, "step": 700, "seconds": 60.0}}, "steps_per_s": 11.0}
+    (tmp_path / "o2.json").write_text(json.dumps(faster))
+    assert main(["bench", "captures", "--table", f"fox={tmp_path / 'o2.json'}", "--update", "--json", str(out)]) == 0
+    again = json.loads(out.read_text())["captures"]
+    assert again["fox"]["ours"]["steps_per_s"] == 11.0 and again["fox"]["nerfacto"] == fox["nerfacto"]
+    assert again["fern"] == updated["captures"]["fern"]
     assert main(["bench", "captures", "--table", f"fern={tmp_path / 'o.json'}", "--update", "--json",
                  str(tmp_path / "none.json")]) != 0
     assert "existing table" in capsys.readouterr().err

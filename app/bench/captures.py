@@ -21,7 +21,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--machine", default="", help="with --table: how the runs were taken (cores, threads), in words")
     p.add_argument("--update", action="store_true",
                    help="with --table and --json: replace only the captures given, keeping the other rows of the "
-                        "existing table (each row keeps its own date and command)")
+                        "existing table (each row keeps its own date and command); a capture given with OURS.json "
+                        "alone keeps its nerfacto row")
     p.add_argument("--from", dest="source", default=None,
                    help="the fetched snapshot's git directory (e.g. /work/.mirror/OWNER+NAME/repo) or a plain folder")
     p.add_argument("--dest", default=None, help=f"folder that receives NAME/ (default {default_root()})")
@@ -46,7 +47,7 @@ def _table(args: argparse.Namespace) -> int:
     from repaint_nerf.core.bench.captures import side_by_side
     from repaint_nerf.core.errors import UserError
 
-    rows, firsts = {}, []
+    rows, firsts, ours_only = {}, [], []
     for item in args.table:
         name, _, files = item.partition("=")
         paths = [Path(f) for f in files.split(",") if f]
@@ -60,6 +61,8 @@ def _table(args: argparse.Namespace) -> int:
                                                                  "nerfacto wrote") from None
         rows[name] = side_by_side(loaded[0], loaded[1] if len(loaded) > 1 else None)
         firsts.append(loaded[0])
+        if len(loaded) == 1:
+            ours_only.append(name)
     devices = sorted({str(d.get("device")) for d in firsts if d.get("device")})
     old = {}
     if args.update:
@@ -70,6 +73,8 @@ def _table(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(f"{args.json} is not a table bench captures wrote ({exc})") from None
         devices = sorted(set(devices) | {d for d in str(old.get("device", "")).split(", ") if d and d != "?"})
+        for name in ours_only:  # our side re-measured (a speed-up): nerfacto's 30-minute run stands as it was
+            rows[name]["nerfacto"] = (old.get("captures", {}).get(name) or {}).get("nerfacto")
     table = {"machine": args.machine or old.get("machine", ""), "device": ", ".join(devices) or "?",
              "report_at": ["60", "120", "300"], "captures": {**old.get("captures", {}), **rows}}
     text = json.dumps(table, indent=1)
