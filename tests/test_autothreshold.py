@@ -815,6 +815,29 @@ def test_region_levels_hold_every_thresholds_region():
     assert not (region > 0.85).any()
 
 
+def test_a_cut_out_object_is_walled_in_by_empty_space():
+    """A cut-out capture (ethiopian_head: the object trains on its masks): the object is the view's only surface and
+    a quarter of its pixels, empty space all round. Its similarities to a patch fade from 0.95 at the top to 0.55 at
+    the bottom, so the view's split of them cuts it in two. Walled in by the empty space, the region is the whole
+    object up to the top of its flat start; counted against the view's surface rather than its pixels it read as
+    walled in by nothing, and the split kept the upper half."""
+    from repaint_nerf.core.select.autothreshold import patch_auto_threshold_px, view_split
+
+    h = w = 96
+    yy, _ = np.mgrid[:h, :w]
+    obj = _disc(h, w, 48, 48, 27)
+    sim = np.where(obj, 0.95 - 0.4 * (yy - 21) / 54.0, 0.0).astype(np.float32)
+    opacity = obj.astype(np.float32)
+    depth = np.where(obj, 2.0, 0.0).astype(np.float32)
+    seeds = patch_pixels((h, w), (0.45, 0.30, 0.55, 0.40))
+    assert 0.25 > obj.mean() and view_split(sim, obj) > 0.65  # the split alone halves it
+    a = patch_auto_threshold_px(sim, seeds, depth, opacity)
+    assert a.jump is None and a.value < 0.62, a.value
+    barrier = depth_edges(depth, opacity)
+    assert _iou(grow(sim > a.value, seeds, barrier), obj) > 0.9 > 0.7 > _iou(grow(sim > view_split(sim, obj), seeds,
+                                                                                    barrier), obj)
+
+
 def test_a_region_that_fills_the_view_is_not_walled_in():
     """No depth edge (the rough depth of a real capture): the region grown at the lowest thresholds is the whole
     view, flat until the background's similarities (0.2-0.45, a slow gradient) start to fall away, with no jump,

@@ -27,10 +27,13 @@ PLATEAU_WINDOW = 2  # grid steps each side for the flatness test
 PLATEAU_RATIO = 1.1  # flat: the area changes by under 10% across the window
 WALL_MARGIN = 2  # grid steps below the top of a walled region that the view's floor may reach
 FALLBACK = 0.5  # no usable evidence (an empty or constant map)
-WALL_SHARE = 0.5  # a region holding this share of the view's surface at the lowest threshold is walled in by nothing
-# (measured at 600 steps: the presets' walled regions 0.5-17% of it, room360's slowly shrinking one 35%; on the fox
-# capture, whose rough depth shows no edges, 99%: the floor stopped at 0.06-0.08, the threshold stayed at the
-# curve's 0.26 and the overlay covered 70% of the view)
+WALL_SHARE = 0.5  # a region holding this share of the view's pixels at the lowest threshold is walled in by nothing
+# (measured at 600 steps as shares of the view's surface, which bound its share of the pixels: the presets' walled
+# regions 0.5-17%, room360's slowly shrinking one 35%; on the fox capture, whose rough depth shows no edges, 99%:
+# the floor stopped at 0.06-0.08, the threshold stayed at the curve's 0.26 and the overlay covered 70% of the view.
+# Counted over the surface, a cut-out capture's object, the only surface there is, read as walled in by nothing:
+# ethiopian_head's head, 87% of its view's surface and 25% of its pixels, flat from 0.02 to 0.68, took the view's
+# split 0.87 and lost half of itself)
 PART_STEP = 1.8  # plateaus above a leak whose areas step by this much: the object and a part of it (measured:
 # a printed can's colours 1.9x; a toy and its neighbour, below the leak's, 1.67-1.74x)
 CUT_FRACTION = 0.1  # pixels above the threshold that a lower band cut off, as a share of the kept region: the
@@ -196,10 +199,7 @@ def auto_threshold(similarity: np.ndarray, seeds: np.ndarray, barrier: np.ndarra
     value = whole_object(similarity, levels, thresholds, areas, value, jump, int(free.sum()))
     if jump is None:
         floor = view_split(similarity, surface)
-        room = np.ones(np.shape(seeds), bool) if surface is None else np.asarray(surface, bool)
-        if barrier is not None:
-            room &= ~np.asarray(barrier, bool)
-        top = walled_top(thresholds, areas, int(free.sum()), int(room.sum()))
+        top = walled_top(thresholds, areas, int(free.sum()), int(np.size(seeds)))
         value = max(value, floor if top is None else min(floor, top))
     return AutoThreshold(value, np.asarray(thresholds), areas, jump, levels)
 
@@ -235,7 +235,7 @@ def walled_top(thresholds: np.ndarray, areas: np.ndarray, seed_area: int = 1, ro
                ) -> float | None:
     """Where a region walled in from the lowest threshold up starts to shrink, `WALL_MARGIN` grid steps below
     it; None when the lowest threshold's region is not flat, or holds `WALL_SHARE` of the `room` (the view's
-    surface pixels off the barrier) or more: walled in by nothing. The floor of `auto_threshold` stops there: a
+    pixels) or more: walled in by nothing. The floor of `auto_threshold` stops there: a
     floor above it cuts the walled region, which is the whole object in that view (a printed can walled in by
     the depth edges of a free view: flat 0.02-0.44 under the blended teacher; the floor's 0.57 kept one of its
     colours, editor's-way IoU 0.54, against 0.95 at 0.42)."""
