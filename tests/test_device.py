@@ -44,7 +44,6 @@ def test_threads_that_change_nothing_leave_torch_alone(monkeypatch):
     assert calls == []
 
 
-
 _FAULTS = """
 import resource, sys
 if sys.argv[1] == "1":

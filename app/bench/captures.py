@@ -47,7 +47,7 @@ def _table(args: argparse.Namespace) -> int:
     from repaint_nerf.core.bench.captures import side_by_side
     from repaint_nerf.core.errors import UserError
 
-    rows, firsts, ours_only = {}, [], []
+    rows, firsts = {}, []
     for item in args.table:
         name, _, files = item.partition("=")
         paths = [Path(f) for f in files.split(",") if f]
@@ -61,8 +61,6 @@ def _table(args: argparse.Namespace) -> int:
                                                                  "nerfacto wrote") from None
         rows[name] = side_by_side(loaded[0], loaded[1] if len(loaded) > 1 else None)
         firsts.append(loaded[0])
-        if len(loaded) == 1:
-            ours_only.append(name)
     devices = sorted({str(d.get("device")) for d in firsts if d.get("device")})
     old = {}
     if args.update:
@@ -73,8 +71,9 @@ def _table(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(f"{args.json} is not a table bench captures wrote ({exc})") from None
         devices = sorted(set(devices) | {d for d in str(old.get("device", "")).split(", ") if d and d != "?"})
-        for name in ours_only:  # our side re-measured (a speed-up): nerfacto's 30-minute run stands as it was
-            rows[name]["nerfacto"] = (old.get("captures", {}).get(name) or {}).get("nerfacto")
+        for name, row in rows.items():  # our side alone re-measured (a speed-up): nerfacto's 30-minute run stands
+            if row["nerfacto"] is None:
+                row["nerfacto"] = (old.get("captures", {}).get(name) or {}).get("nerfacto")
     table = {"machine": args.machine or old.get("machine", ""), "device": ", ".join(devices) or "?",
              "report_at": ["60", "120", "300"], "captures": {**old.get("captures", {}), **rows}}
     text = json.dumps(table, indent=1)
