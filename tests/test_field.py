@@ -133,6 +133,15 @@ def test_default_config_per_device():
     NGPField(FieldConfig(**{**cpu.to_dict(), "encoding_impl": "indexed"}))  # builds
 
 
+def test_cpu_table_grows_with_the_image_from_256_px():
+    """A CPU field keeps the in-cache 2^14 table up to 256-px images and grows it 4x per doubling of the image
+    (the finest level's cells on a surface) to 2^16 at ~512 px, never past it; CUDA keeps instant-ngp's 2^19."""
+    tables = {px: default_field_config("cpu", px).log2_table for px in (64, 128, 256, 300, 362, 500, 512, 1024, 4096)}
+    assert tables == {64: 14, 128: 14, 256: 14, 300: 14, 362: 15, 500: 16, 512: 16, 1024: 16, 4096: 16}
+    assert default_field_config("cuda", 512).log2_table == 19
+    assert default_field_config("cpu", 512, log2_table=12).log2_table == 12  # an override still wins
+
+
 @pytest.mark.parametrize("codes", [0, 4])
 def test_directions_per_ray_give_the_per_point_colours_and_gradients(codes):
     """The renderer's call (directions and image codes per ray, each point's ray index) computes the colour head's

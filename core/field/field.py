@@ -6,6 +6,7 @@ like colour, paper Eq. F(r)) in one of two designs, chosen by `FieldConfig.featu
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -203,8 +204,9 @@ def default_field_config(device: torch.device | str | None = None, image_size: i
     2048, contended 2-core CPU, rough): forward+backward 0.23 Mpt/s at 2^14, 0.10 at 2^16; at 2^16 and
     finest 512, 8 levels 0.14 Mpt/s vs 12 levels 0.09. So the CPU default takes the in-cache 2^14 table
     (128 KB per hashed level) and 12 levels, and the finest resolution follows the image (4 cells per
-    pixel, 256..2048): finer levels add no detail a 128-px view can show. Reconstruction quality of these
-    shapes is for the recon benchmark to confirm. Figures: `repaint-nerf bench encoding`.
+    pixel, 256..2048): finer levels add no detail a 128-px view can show. The table grows with the image
+    (`cpu_log2_table`). Reconstruction quality of these shapes is for the recon benchmark to confirm. Figures:
+    `repaint-nerf bench encoding`.
     """
     from repaint_nerf.core.device import get_device
 
@@ -213,10 +215,23 @@ def default_field_config(device: torch.device | str | None = None, image_size: i
         cfg = FieldConfig(levels=16, features_per_level=2, log2_table=19, base_res=16, finest_res=2048)
     else:
         finest = int(min(2048, max(256, 4 * image_size)))
-        cfg = FieldConfig(levels=CPU_LEVELS, features_per_level=2, log2_table=CPU_LOG2_TABLE, base_res=16,
-                          finest_res=finest)
+        cfg = FieldConfig(levels=CPU_LEVELS, features_per_level=2, log2_table=cpu_log2_table(image_size),
+                          base_res=16, finest_res=finest)
     return FieldConfig(**{**cfg.to_dict(), **overrides})
 
 
+def cpu_log2_table(image_size: int) -> int:
+    """log2 of a hashed level's table on a CPU for images `image_size` pixels on their long side: 2^14 up to 256 px,
+    then 4x per doubling of the image (the cells a surface covers at the finest level, which follows the image), up
+    to 2^16 from about 512 px. 2^14 stays in cache, where each step is fastest; 2^16 (512 KB a level) costs ~15% of
+    the steps, and on photos of ~500 px gains more than that: one core, 300 s, 2^16 against 2^14, held-out PSNR at
+    60 / 120 / 300 s: fox +0.59 / +0.73 / +1.10 dB, fern +0.36 / +0.36 / +0.52, ethiopian_head +0.22 / +0.18 / +0.16
+    (docs/ARCHITECTURE.md, "Speed")."""
+    grow = CPU_LOG2_TABLE + 2 * math.log2(max(image_size, 1) / CPU_TABLE_FROM_PX)
+    return int(min(CPU_LOG2_TABLE_MAX, max(CPU_LOG2_TABLE, round(grow))))
+
+
 CPU_LEVELS = 12
-CPU_LOG2_TABLE = 14
+CPU_LOG2_TABLE = 14  # up to CPU_TABLE_FROM_PX
+CPU_TABLE_FROM_PX = 256
+CPU_LOG2_TABLE_MAX = 16
