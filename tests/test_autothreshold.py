@@ -809,10 +809,10 @@ def test_region_levels_hold_every_thresholds_region():
     seeds = np.zeros((h, w), bool)
     seeds[95, 61], seeds[108, 77] = True, True
     region = region_similarity(sim, seeds, depth, np.ones((h, w), np.float32))
-    assert region.shape == sim.shape and (region <= sim).all()
+    assert region.shape == sim.shape and (region <= sim)[~left].all()  # inside, the seeds show at any threshold
     for t in (0.3, 0.5, 0.75):
         assert (region > t)[left].mean() > 0.95 and not (region > t)[right].any()
-    assert not (region > 0.85).any()
+    assert not (region > 0.85)[~_disc(h, w, 100, 70, 12)].any()
 
 
 def test_a_cut_out_object_is_walled_in_by_empty_space():
@@ -856,3 +856,78 @@ def test_a_region_that_fills_the_view_is_not_walled_in():
     assert a.jump is None and top is not None and top < 0.2  # the old reading: a wall, and the floor stopped there
     assert 0.45 < a.value < 0.6, a.value
     assert _iou(grow(sim > a.value, seeds), obj) > 0.9 > 0.5 > _iou(grow(sim > top, seeds), obj)
+
+
+def _fill_level_holes_reference(levels: np.ndarray) -> np.ndarray:
+    """Per threshold: the region `levels >= k` with the 4-connected components of its complement filled that touch
+    neither the image border nor a patch of pixels no threshold reaches over SPECK of the reached area."""
+    import cv2
+
+    from repaint_nerf.core.select.geometry import SPECK
+
+    out = levels.copy()
+    n, lab, stats, _ = cv2.connectedComponentsWithStats((levels < 0).astype(np.uint8), connectivity=8)
+    walls = (levels < 0) & (stats[lab, cv2.CC_STAT_AREA] > SPECK * (levels >= 0).sum())
+    for k in range(int(levels.max()) + 1):
+        region = levels >= k
+        n, lab = cv2.connectedComponents((~region).astype(np.uint8), connectivity=4)
+        outside = walls.copy()
+        outside[0, :] = outside[-1, :] = outside[:, 0] = outside[:, -1] = True
+        open_ = np.unique(lab[outside & ~region])
+        hole = ~region & ~np.isin(lab, open_)
+        out[hole] = np.maximum(out[hole], k)
+    return out
+
+
+def test_filled_levels_match_each_thresholds_filled_region():
+    """fill_level_holes (one reconstruction by erosion) fills, at every threshold, the holes that a per-threshold
+    labelling fills, on random blurred maps with walls."""
+    import cv2
+
+    from repaint_nerf.core.select.autothreshold import fill_level_holes, region_levels
+
+    rng = np.random.default_rng(5)
+    for trial in range(4):
+        sim = cv2.GaussianBlur(rng.random((48, 64)).astype(np.float32), (5, 5), 1.5)
+        sim = (sim - sim.min()) / (sim.max() - sim.min())
+        seeds = np.zeros(sim.shape, bool)
+        seeds[22:26, 30:34] = True
+        barrier = rng.random(sim.shape) < 0.02 if trial % 2 else None
+        levels = region_levels(sim, seeds, barrier)
+        filled = fill_level_holes(levels)
+        np.testing.assert_array_equal(filled, _fill_level_holes_reference(levels))
+        assert (filled >= levels).all()
+    assert (fill_level_holes(np.full((5, 5), -1, np.int16)) == -1).all()
+
+
+def test_the_overlay_fills_similarity_speckles_but_not_a_walled_hole():
+    """A disc whose similarity dips under the threshold in scattered specks (a head whose hair and face differ) and
+    whose depth has a speck of noise shows whole above that threshold, as its masks are filled; a ring's hole,
+    walled off by a depth edge and showing the floor behind, stays a hole."""
+    from repaint_nerf.core.select.autothreshold import region_similarity
+
+    h, w = 120, 160
+    rng = np.random.default_rng(0)
+    disc = _disc(h, w, 60, 50, 35)
+    specks = disc & (rng.random((h, w)) < 0.15)
+    specks[58:63, 48:53] = False  # the patch
+    sim = np.where(disc, np.where(specks, 0.55, 0.8), 0.1).astype(np.float32)
+    seeds = np.zeros((h, w), bool)
+    seeds[58:63, 48:53] = True
+    depth = np.where(disc, 2.0, 6.0).astype(np.float32)
+    depth[40:42, 40:42] = 2.3  # depth noise: a speck of depth edges inside the disc
+    region = region_similarity(sim, seeds, depth, np.ones((h, w), np.float32))
+    inner = _disc(h, w, 60, 50, 30)
+    assert (region > 0.7)[inner].all()  # no speck left
+    assert not (region > 0.7)[~_disc(h, w, 60, 50, 37)].any()
+    assert not (region > 0.85)[~_disc(h, w, 60, 50, 10)].any()  # above every similarity: the patch alone
+
+    ring = _disc(h, w, 60, 110, 40) & ~_disc(h, w, 60, 110, 15)
+    hole = _disc(h, w, 60, 110, 12)
+    sim = np.where(ring, 0.8, np.where(hole, 0.5, 0.1)).astype(np.float32)  # the floor in the hole: similar enough
+    depth = np.where(ring, 2.0, 6.0).astype(np.float32)  # to join at 0.4, but behind a depth edge
+    seeds = np.zeros((h, w), bool)
+    seeds[60, 75:80] = True
+    region = region_similarity(sim, seeds, depth, np.ones((h, w), np.float32))
+    assert (region > 0.7)[_disc(h, w, 60, 110, 37) & ~_disc(h, w, 60, 110, 18)].mean() > 0.95
+    assert not (region > 0.7)[hole].any()

@@ -333,9 +333,45 @@ def level_similarity(similarity: np.ndarray, levels: np.ndarray) -> np.ndarray:
     full = np.asarray(similarity, np.float32)
     top = np.append(GRID[1:], 1.0 + 1e-6) - 1e-6  # a pixel of level k leaves the region above GRID[k]
     reach = np.where(levels >= 0, top[np.maximum(levels, 0)], -1.0).astype(np.float32)
+    # inside a region (its holes filled) the overlay is solid: a pixel whose cell and the cells around it are in
+    # the region at level k shows above GRID[k] whatever its own similarity; at the region's edge the full-size
+    # similarity draws the outline
+    inner = cv2.erode(fill_level_holes(levels), cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+                      borderType=cv2.BORDER_CONSTANT, borderValue=-1)
+    inner = np.where(inner >= 0, top[np.maximum(inner, 0)], -1.0).astype(np.float32)
     if reach.shape != full.shape:
-        reach = cv2.resize(reach, (full.shape[1], full.shape[0]), interpolation=cv2.INTER_NEAREST)
-    return np.minimum(full, reach)
+        size = (full.shape[1], full.shape[0])
+        reach = cv2.resize(reach, size, interpolation=cv2.INTER_NEAREST)
+        inner = cv2.resize(inner, size, interpolation=cv2.INTER_NEAREST)
+    return np.maximum(np.minimum(full, reach), inner)
+
+
+def fill_level_holes(levels: np.ndarray) -> np.ndarray:
+    """`levels` (a `region_levels` map) with each threshold's region's holes filled: per pixel, the highest k at
+    which it lies in `levels >= k` or in a hole of it. A hole is enclosed by the region and holds only pixels that
+    regions of lower thresholds reach: the same surface, its similarity dipping under the threshold, which the masks
+    fill as well (geometry.fill_holes). The image border counts as outside, and so do pixels no threshold reaches
+    (-1: walled off by a depth edge, or under every threshold) where they form a patch over `geometry.SPECK` of the
+    region's area: the masks fill smaller walled holes as depth noise. One grayscale reconstruction by erosion from
+    the outside gives every threshold's fill at once (4-connected, as the regions' complements are labelled)."""
+    from repaint_nerf.core.select.geometry import SPECK
+
+    lv = np.asarray(levels, np.int16)
+    if lv.size == 0 or lv.max() < 0:
+        return lv.copy()
+    unreached = (lv < 0).astype(np.uint8)
+    _, lab, stats, _ = cv2.connectedComponentsWithStats(unreached, connectivity=8)
+    big = stats[:, cv2.CC_STAT_AREA] > SPECK * max(int(np.count_nonzero(lv >= 0)), 1)
+    outside = big[lab] & (unreached > 0)
+    outside[0, :] = outside[-1, :] = outside[:, 0] = outside[:, -1] = True
+    marker = np.where(outside, lv, lv.max()).astype(np.int16)
+    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+    for _ in range(lv.size):  # converges in about the longest path a hole's pixels take out; the bound never binds
+        nxt = np.maximum(cv2.erode(marker, cross, borderType=cv2.BORDER_REPLICATE), lv)
+        if np.array_equal(nxt, marker):
+            break
+        marker = nxt
+    return marker
 
 
 def _query_maps(similarity, seeds: np.ndarray, depth, opacity, max_side: int, edges: bool
