@@ -223,8 +223,8 @@ def default_field_config(device: torch.device | str | None = None, image_size: i
 def cpu_log2_table(image_size: int) -> int:
     """log2 of a hashed level's table on a CPU for images `image_size` pixels on their long side: 2^14 up to 256 px,
     then 4x per doubling of the image (the cells a surface covers at the finest level, which follows the image), up
-    to 2^16 from about 512 px. 2^14 stays in cache, where each step is fastest; 2^16 (512 KB a level) costs ~15% of
-    the steps, and on photos of ~500 px gains more than that: one core, 300 s, 2^16 against 2^14, held-out PSNR at
+    to 2^16 from about 512 px. 2^14 stays in cache, where each step is fastest; 2^16 (512 KB a level) makes each step
+    15-27% slower, and on photos of ~500 px gains more than that: one core, 300 s, 2^16 against 2^14, held-out PSNR at
     60 / 120 / 300 s: fox +0.59 / +0.73 / +1.10 dB, fern +0.36 / +0.36 / +0.52, ethiopian_head +0.22 / +0.18 / +0.16
     (docs/ARCHITECTURE.md, "Speed")."""
     grow = CPU_LOG2_TABLE + 2 * math.log2(max(image_size, 1) / CPU_TABLE_FROM_PX)

@@ -316,8 +316,9 @@ def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, m
                       edges: bool = True) -> np.ndarray:
     """The similarity map (H, W) kept only where the region grown from `seeds` through it reaches (as
     `patch_auto_threshold_px` grows it, at most `max_side` px, not across depth edges): float32 (H, W) whose
-    `> t` is that region at threshold t, to a grid step; -1 where no threshold's region reaches. The editor's
-    overlay shows this, so that the slider shows the object the masks will hold, not every pixel of its colour."""
+    `> t` is that region at threshold t with its holes filled (`fill_level_holes`), to a grid step; -1 where no
+    threshold's region reaches. The editor's overlay shows this, so that the slider shows the object the masks will
+    hold, not every pixel of its colour."""
     full = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
     seeds = np.asarray(seeds, bool)
     step = int(np.ceil(max(full.shape) / float(max_side)))
@@ -325,6 +326,9 @@ def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, m
         seeds = cv2.dilate(seeds.astype(np.uint8), np.ones((step, step), np.uint8)) > 0
     s, small, barrier, _ = _query_maps(full, seeds, depth, opacity, max_side, edges)
     return level_similarity(full, region_levels(s, small, barrier))
+
+
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))  # 4-neighbourhood
 
 
 def level_similarity(similarity: np.ndarray, levels: np.ndarray) -> np.ndarray:
@@ -336,8 +340,7 @@ def level_similarity(similarity: np.ndarray, levels: np.ndarray) -> np.ndarray:
     # inside a region (its holes filled) the overlay is solid: a pixel whose cell and the cells around it are in
     # the region at level k shows above GRID[k] whatever its own similarity; at the region's edge the full-size
     # similarity draws the outline
-    inner = cv2.erode(fill_level_holes(levels), cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
-                      borderType=cv2.BORDER_CONSTANT, borderValue=-1)
+    inner = cv2.erode(fill_level_holes(levels), _CROSS, borderType=cv2.BORDER_CONSTANT, borderValue=-1)
     inner = np.where(inner >= 0, top[np.maximum(inner, 0)], -1.0).astype(np.float32)
     if reach.shape != full.shape:
         size = (full.shape[1], full.shape[0])
@@ -365,9 +368,8 @@ def fill_level_holes(levels: np.ndarray) -> np.ndarray:
     outside = big[lab] & (unreached > 0)
     outside[0, :] = outside[-1, :] = outside[:, 0] = outside[:, -1] = True
     marker = np.where(outside, lv, lv.max()).astype(np.int16)
-    cross = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
     for _ in range(lv.size):  # converges in about the longest path a hole's pixels take out; the bound never binds
-        nxt = np.maximum(cv2.erode(marker, cross, borderType=cv2.BORDER_REPLICATE), lv)
+        nxt = np.maximum(cv2.erode(marker, _CROSS, borderType=cv2.BORDER_REPLICATE), lv)
         if np.array_equal(nxt, marker):
             break
         marker = nxt
