@@ -1,9 +1,9 @@
 """The viewport's GPU side: textures streamed from the worker, drawn with the shaders in `shaders/`.
 
 Each view mode is one fragment shader over the same full-target triangle. The frame is drawn into an
-offscreen framebuffer at the viewport's pixel size and shown with `imgui.image`, so panels can overlap
-it. The similarity map is a float texture and the threshold a uniform: moving the slider redraws,
-it does not re-render. The mask overlay thresholds the similarity where the selection's region reaches (grown
+offscreen framebuffer, which the window blits to the screen, opaque, before imgui draws its windows over it.
+The similarity map is a float texture and the threshold a uniform: moving the slider redraws, it does not
+re-render. The mask overlay thresholds the similarity where the selection's region reaches (grown
 from its anchors, not across depth edges, as the masks grow it), so it shows the object, not its colour.
 """
 from __future__ import annotations

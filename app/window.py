@@ -97,6 +97,11 @@ class Window:
         imgui.backends.opengl3_init("#version 330")
         self._injectors: list[Callable[[imgui.IO], None]] = []
         self._closed = False
+        self._blit: tuple | None = None  # the blit program and its vertex array, made on first use
+        self._window_cache = _WindowCache(self.ctx)
+        # Windows are opaque: a panel covers what is under it (end_frame's `cached` window is blitted opaque)
+        bg = imgui.get_style().color_(imgui.Col_.window_bg)
+        imgui.get_style().set_color_(imgui.Col_.window_bg, imgui.ImVec4(bg.x, bg.y, bg.z, 1.0))
 
     def inject(self, fn: Callable[["imgui.IO"], None]) -> None:
         """Queue a function that adds imgui input events for the next frame (tests, scripted benchmarks)."""
@@ -155,23 +160,81 @@ class Window:
             fn(io)
         imgui.new_frame()
 
-    def end_frame(self, capture: bool = False, present: bool = True, clear: bool = True) -> np.ndarray | None:
+    def end_frame(self, capture: bool = False, present: bool = True, bare: list | None = None,
+                  underlay: tuple | None = None, cached: tuple | None = None) -> np.ndarray | None:
         """Draw imgui and present; with `capture`, return the finished frame as uint8 RGB (H, W, 3). With
         `present` false the frame ends without drawing (and without a capture): the screen keeps the last
-        picture. `clear` false
-        when opaque windows cover the whole screen (a full-screen pass less on a software rasterizer)."""
+        picture. On a software rasterizer every pixel drawn costs, so:
+        - `underlay` (texture, rect) is a picture blitted opaque under imgui's windows (the viewport's), its rows
+          stored top first;
+        - `bare` lists the rects that neither it nor a window covers, the only ones cleared (None: the screen);
+        - `cached` (draw list, rect) is an opaque window redrawn only when its draw list changed (the panels:
+          4.5 of a UI frame's 10 ms on llvmpipe), else blitted from the last time it was drawn.
+        Rects are (x, y, w, h) in window coordinates."""
         imgui.render()
         if not present:
             return None
         w, h = self.framebuffer_size()
+        draw_data = imgui.get_draw_data()
+        lists = [draw_data.cmd_lists[i] for i in range(draw_data.cmd_lists_count)]
+        at = next((i for i, dl in enumerate(lists) if cached is not None and dl is cached[0]), None)
+        if at is not None:
+            self._window_cache.update(lists[at], self.fb_rect(cached[1]), draw_data, (w, h))
         self.ctx.screen.use()
-        self.ctx.viewport = (0, 0, w, h)
-        if clear:
+        if bare is None:
+            self.ctx.viewport = (0, 0, w, h)
             self.ctx.clear(0.1, 0.1, 0.12, 1.0)
-        imgui.backends.opengl3_render_draw_data(imgui.get_draw_data())
+        for rect in bare or ():
+            fb = self.fb_rect(rect)
+            if fb[2] > 0 and fb[3] > 0:
+                self.ctx.clear(0.1, 0.1, 0.12, 1.0, viewport=fb)
+        if underlay is not None:
+            self.blit(underlay[0], self.fb_rect(underlay[1]), src=(0.0, 1.0, 1.0, -1.0))
+        if at is None:
+            self.ctx.viewport = (0, 0, w, h)
+            imgui.backends.opengl3_render_draw_data(draw_data)
+        else:
+            _render_lists(draw_data, lists[:at], textures=True)
+            self._window_cache.blit(self)
+            _render_lists(draw_data, lists[at + 1:])
         shot = self._read_screen(w, h) if capture else None
         glfw.swap_buffers(self.handle)
         return shot
+
+    def blit(self, texture: moderngl.Texture, rect: tuple[int, int, int, int],
+             src: tuple[float, float, float, float] = (0.0, 0.0, 1.0, 1.0)) -> None:
+        """Draw `texture`'s region `src` (u, v at the rect's bottom-left, then the step to its top-right) over the
+        bound framebuffer's pixel `rect` (GL's bottom-left origin), opaque. A region of one texel a pixel is read
+        with the nearest filter, the same picture for less than a bilinear read costs."""
+        if self._blit is None:
+            from repaint_nerf.app.viewport import load_shader
+
+            prog = self.ctx.program(vertex_shader=load_shader("viewport.vert"),
+                                    fragment_shader=load_shader("blit.frag"))
+            self._blit = (prog, self.ctx.vertex_array(prog, []))
+        prog, vao = self._blit
+        one_to_one = (abs(abs(src[2]) * texture.width - rect[2]) < 0.5
+                      and abs(abs(src[3]) * texture.height - rect[3]) < 0.5)
+        filt = moderngl.NEAREST if one_to_one else moderngl.LINEAR
+        texture.filter = (filt, filt)
+        texture.repeat_x = texture.repeat_y = False  # a bilinear read at the edge must not wrap to the other side
+        texture.use(location=0)
+        prog["picture"] = 0
+        prog["src_origin"] = src[:2]
+        prog["src_size"] = src[2:]
+        self.ctx.viewport = rect
+        self.ctx.disable(moderngl.BLEND | moderngl.DEPTH_TEST)
+        vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def fb_rect(self, rect: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
+        """A rect in window coordinates (x, y, w, h; top-left origin, as imgui's) in framebuffer pixels with GL's
+        bottom-left origin (a HiDPI screen's framebuffer has more pixels than the window has units)."""
+        sx, sy = imgui.get_io().display_framebuffer_scale
+        fb_h = self.framebuffer_size()[1]
+        x, y, w, h = rect
+        x0, x1 = round(x * sx), round((x + w) * sx)
+        y0, y1 = round(y * sy), round((y + h) * sy)
+        return x0, fb_h - y1, x1 - x0, y1 - y0
 
     def _read_screen(self, w: int, h: int) -> np.ndarray:
         data = self.ctx.screen.read(viewport=(0, 0, w, h), components=3, alignment=1)
@@ -181,12 +244,88 @@ class Window:
         if self._closed:
             return
         self._closed = True
+        self._window_cache.release()
         imgui.backends.opengl3_shutdown()
         imgui.backends.glfw_shutdown()
         implot.destroy_context()
         imgui.destroy_context()
         glfw.destroy_window(self.handle)
         glfw.terminate()
+
+
+_DRAW_VERT_BYTES = 20  # ImDrawVert: position (2 floats), texture coordinate (2 floats), colour (4 bytes)
+
+
+class _WindowCache:
+    """One imgui window's pixels, kept in a framebuffer-sized texture and redrawn only when its draw list (vertices,
+    indices, commands) or its place changed: a panel whose text did not change is not rasterized again."""
+
+    def __init__(self, ctx: moderngl.Context):
+        self.ctx = ctx
+        self.texture: moderngl.Texture | None = None
+        self.fbo: moderngl.Framebuffer | None = None
+        self.rect: tuple[int, int, int, int] | None = None
+        self.signature: tuple | None = None
+        self.redraws = 0  # times the window was rasterized (the rest were blits)
+
+    def update(self, draw_list, rect: tuple[int, int, int, int], draw_data, size: tuple[int, int]) -> None:
+        """Redraw the window into the texture when `draw_list` or `rect` (framebuffer pixels) changed."""
+        signature = (rect, size, _draw_list_bytes(draw_list))
+        if signature == self.signature and self.texture is not None:
+            return
+        if self.texture is None or self.texture.size != size:
+            if self.fbo is not None:
+                self.fbo.release()
+                self.texture.release()
+            self.texture = self.ctx.texture(size, 4)
+            self.fbo = self.ctx.framebuffer(color_attachments=[self.texture])
+        self.fbo.use()
+        self.ctx.clear(0.0, 0.0, 0.0, 0.0, viewport=rect)
+        _render_lists(draw_data, [draw_list], textures=True)
+        self.rect, self.signature = rect, signature
+        self.redraws += 1
+
+    def blit(self, window: "Window") -> None:
+        if self.texture is None or self.rect is None:
+            return
+        x, y, w, h = self.rect
+        tw, th = self.texture.size
+        window.blit(self.texture, self.rect, src=(x / tw, y / th, w / tw, h / th))
+
+    def release(self) -> None:
+        if self.fbo is not None:
+            self.fbo.release()
+            self.texture.release()
+        self.fbo = self.texture = self.signature = None
+
+
+def _draw_list_bytes(draw_list) -> tuple:
+    """What a draw list draws, as bytes to compare: its vertices and indices, and each command's clip rect,
+    texture and element range."""
+    import ctypes
+
+    vtx, idx = draw_list.vtx_buffer, draw_list.idx_buffer
+    cmds = tuple(((c.clip_rect.x, c.clip_rect.y, c.clip_rect.z, c.clip_rect.w), c.tex_ref._tex_id, c.elem_count,
+                  c.idx_offset, c.vtx_offset)  # the texture by id: one the backend has not made yet has none
+                 for c in (draw_list.cmd_buffer[i] for i in range(draw_list.cmd_buffer.size())))
+    idx_bytes = 4 if type(idx).__name__ == "ImVector_uint" else 2  # ImDrawIdx as imgui_bundle compiles it
+    return (ctypes.string_at(vtx.data_address(), vtx.size() * _DRAW_VERT_BYTES),
+            ctypes.string_at(idx.data_address(), idx.size() * idx_bytes), cmds)
+
+
+def _render_lists(draw_data, lists: list, textures: bool = False) -> None:
+    """Render some of a frame's draw lists, in order, with imgui's OpenGL backend into the bound framebuffer
+    (`textures`: this call also makes the frame's texture updates, e.g. new font glyphs)."""
+    if not lists:
+        return
+    part = imgui.ImDrawData()
+    part.display_pos, part.display_size = draw_data.display_pos, draw_data.display_size
+    part.framebuffer_scale = draw_data.framebuffer_scale
+    if textures:
+        part.textures = draw_data.textures
+    for dl in lists:
+        part.add_draw_list(dl)
+    imgui.backends.opengl3_render_draw_data(part)
 
 
 def _window_address(handle) -> int:

@@ -1,0 +1,99 @@
+"""The window's cheap drawing in a real window: the viewport's picture blitted opaque under imgui's windows, only the
+bars beside it cleared, and a panel whose draw list did not change blitted from its last rasterization instead of
+drawn again; each frame must look as the plain full draw does."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+WIDTH, HEIGHT = 640, 400
+PANEL = (440.0, 0.0, 200.0, 400.0)  # x, y, w, h of the panel window
+PICTURE = (60.0, 20.0, 320.0, 360.0)  # the picture's rect, bars left and right of it and above and below
+
+
+def _picture(ctx):
+    """A 32x36 texture stored top row first, as the viewport's: red at the top-left texel, blue at the bottom-right,
+    a grey ramp elsewhere."""
+    img = np.zeros((36, 32, 4), np.uint8)
+    img[..., :3] = np.linspace(40, 200, 32, dtype=np.uint8)[None, :, None]
+    img[..., 3] = 255
+    img[:4, :4, :3] = (255, 0, 0)
+    img[-4:, -4:, :3] = (0, 0, 255)
+    return ctx.texture((32, 36), 4, img.tobytes())
+
+
+def _frame(window, text: str, cached: bool, picture, capture: bool = True):
+    """One UI frame: a panel window with `text`, the picture under the rest; returns the screen."""
+    from imgui_bundle import imgui
+
+    from repaint_nerf.app.editor import _bars
+
+    window.begin_frame()
+    imgui.set_next_window_pos(imgui.ImVec2(*PANEL[:2]))
+    imgui.set_next_window_size(imgui.ImVec2(*PANEL[2:]))
+    imgui.begin("Panel", None, imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize)
+    panel = imgui.get_window_draw_list()
+    imgui.text(text)
+    imgui.button("a button")
+    imgui.end()
+    area = (0.0, 0.0, PANEL[0], float(HEIGHT))
+    return window.end_frame(capture=capture, bare=_bars(area, PICTURE), underlay=(picture, PICTURE),
+                            cached=(panel, PANEL) if cached else None)
+
+
+@pytest.fixture
+def window(xvfb_display):
+    from repaint_nerf.app.window import Window
+
+    w = Window(width=WIDTH, height=HEIGHT)
+    try:
+        yield w
+    finally:
+        w.close()
+
+
+def test_picture_is_blitted_upright_and_only_the_bars_are_cleared(window):
+    picture = _picture(window.ctx)
+    for _ in range(3):  # imgui's first frames lay windows out
+        shot = _frame(window, "step 1", False, picture)
+    x, y, w, h = (int(v) for v in PICTURE)
+    assert tuple(shot[y + 2, x + 2]) == (255, 0, 0), "the texture's first row is the picture's top"
+    assert tuple(shot[y + h - 3, x + w - 3]) == (0, 0, 255)
+    inside = shot[y + h // 2, x + 8:x + w - 8, 0].astype(int)
+    assert np.all(np.diff(inside) >= 0) and inside[-1] - inside[0] > 100, "bilinear upsampling of the ramp"
+    bars = [shot[y:y + h, 2:x - 2], shot[y:y + h, x + w + 2:int(PANEL[0]) - 2], shot[2:y - 2, 5:int(PANEL[0]) - 5],
+            shot[y + h + 2:HEIGHT - 2, 5:int(PANEL[0]) - 5]]
+    clear = np.array([0.1, 0.1, 0.12]) * 255
+    for bar in bars:
+        assert bar.size and np.abs(bar.reshape(-1, 3) - clear).max() <= 1.5, "a bar holds the clear colour"
+
+
+def test_unchanged_panel_is_blitted_and_looks_as_drawn(window):
+    picture = _picture(window.ctx)
+    for _ in range(3):
+        drawn = _frame(window, "step 1", False, picture)
+    cache = window._window_cache
+    for _ in range(4):
+        cached = _frame(window, "step 1", True, picture)
+    assert cache.redraws == 1, "an unchanged panel is rasterized once, then blitted"
+    np.testing.assert_array_equal(cached, drawn)
+    changed = _frame(window, "step 2", True, picture)
+    assert cache.redraws == 2, "a changed panel is drawn again"
+    px, pw = int(PANEL[0]), int(PANEL[2])
+    assert not np.array_equal(changed[:, px:px + pw], drawn[:, px:px + pw]), "the new text is on screen"
+    for _ in range(3):
+        redrawn = _frame(window, "step 2", False, picture)
+    np.testing.assert_array_equal(changed, redrawn)
+
+
+def test_bars_are_the_area_outside_the_picture():
+    from repaint_nerf.app.editor import _bars
+
+    area, inner = (0.0, 10.0, 100.0, 50.0), (20.0, 15.0, 60.0, 40.0)
+    strips = _bars(area, inner)
+    mask = np.zeros((60, 100), bool)
+    for x, y, w, h in strips + [inner]:
+        assert not mask[int(y):int(y + h), int(x):int(x + w)].any(), "no overlaps"
+        mask[int(y):int(y + h), int(x):int(x + w)] = True
+    assert mask[10:60].all() and not mask[:10].any()
+    assert _bars(area, area) == []
