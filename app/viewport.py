@@ -34,6 +34,36 @@ def load_shader(name: str, shader_dir: Path = SHADER_DIR) -> str:
 PER_PIXEL_MODES = ("rgb", "depth", "feature")
 
 
+DISPLAY_SAMPLES = 1 << 16  # pixels a display range is read from: a percentile of 600k values took the UI 6 ms
+
+
+def _percentiles(values: np.ndarray, qs: tuple[float, float]) -> np.ndarray:
+    """`qs` percentiles of `values` (N, ...) along axis 0, from at most DISPLAY_SAMPLES evenly strided rows."""
+    step = max(1, len(values) // DISPLAY_SAMPLES)
+    return np.percentile(values[::step], qs, axis=0)
+
+
+def display_frame(frame: dict) -> dict:
+    """A render made ready to show, on the thread that rendered it: 'rgb' as uint8 (a quarter of the upload), and
+    the depth and feature maps' display ranges (1st to 99th percentile) as 'depth_range' and 'feature_range'."""
+    rgb = frame.get("rgb")
+    if rgb is not None and rgb.dtype != np.uint8:
+        frame["rgb"] = (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    d = frame.get("depth")
+    if d is not None:
+        sample = d.reshape(-1)[::max(1, d.size // DISPLAY_SAMPLES)]
+        valid = sample[sample > 0]
+        if valid.size:
+            lo, hi = np.percentile(valid, (1, 99))
+            frame["depth_range"] = (float(lo), float(hi) + 1e-6)
+    f = frame.get("feature_pca")
+    if f is not None:
+        lo, hi = _percentiles(f.reshape(-1, 3), (1, 99))
+        frame["feature_range"] = (tuple(map(float, lo)), tuple(map(float, hi)))
+    frame.setdefault("depth_range", None)
+    return frame
+
+
 class Viewport:
     """Holds the latest frame's textures and draws one view mode of it into a texture for imgui."""
 
@@ -44,6 +74,7 @@ class Viewport:
                          for m in MODES}
         self.vaos = {m: ctx.vertex_array(p, []) for m, p in self.programs.items()}
         self.textures: dict[str, moderngl.Texture] = {}
+        self._pending: dict[str, np.ndarray] = {}  # content not uploaded yet (`_upload`)
         self.fbo: moderngl.Framebuffer | None = None
         self.color: moderngl.Texture | None = None
         self.depth_range = (0.0, 1.0)
@@ -53,40 +84,52 @@ class Viewport:
         self._drawn: tuple | None = None  # what the viewport texture shows now
 
     def has(self, name: str) -> bool:
-        return name in self.textures
+        return name in self.textures or name in self._pending
 
     def _upload(self, name: str, data: np.ndarray) -> None:
-        data = np.ascontiguousarray(data, dtype=np.float32)
+        """Keep `data` as texture `name`'s next content; it goes to the GPU when a draw first reads it (`_texture`):
+        a frame's depth and feature maps are drawn only in their own view modes, and at 780 px uploading both cost
+        the UI thread 10 ms a frame."""
+        self._pending[name] = data
+        self._uploads += 1
+
+    def _texture(self, name: str) -> moderngl.Texture:
+        """Texture `name`, its pending content uploaded first: uint8 as normalised bytes (a quarter of a float's
+        upload), anything else as float32."""
+        data = self._pending.pop(name, None)
+        if data is None:
+            return self.textures[name]
+        dtype = "f1" if data.dtype == np.uint8 else "f4"
+        data = np.ascontiguousarray(data, dtype=np.uint8 if dtype == "f1" else np.float32)
         h, w = data.shape[:2]
         comps = 1 if data.ndim == 2 else data.shape[2]
         tex = self.textures.get(name)
-        if tex is None or tex.size != (w, h) or tex.components != comps:
+        if tex is None or tex.size != (w, h) or tex.components != comps or tex.dtype != dtype:
             if tex is not None:
                 tex.release()
-            tex = self.ctx.texture((w, h), comps, dtype="f4")
+            tex = self.ctx.texture((w, h), comps, dtype=dtype)
             tex.filter = (moderngl.LINEAR, moderngl.LINEAR)
             tex.repeat_x = tex.repeat_y = False
             self.textures[name] = tex
-        tex.write(data.tobytes())
-        self._uploads += 1
+        tex.write(data)
+        return tex
 
     def upload_frame(self, frame: dict) -> None:
-        """Take a render from the worker: 'rgb' (H,W,3), optional 'depth' (H,W), 'feature_pca' (H,W,3), 'similarity' (H,W)."""
+        """Take a render from the worker: 'rgb' (H,W,3; uint8 or float in [0, 1]), optional 'depth' (H,W),
+        'feature_pca' (H,W,3), 'similarity' (H,W) and 'region', and the display ranges `display_frame` put there
+        (computed here when missing)."""
+        if "rgb" not in frame or "depth_range" not in frame:
+            frame = display_frame(dict(frame))
         if "rgb" in frame:
             rgb = frame["rgb"]
-            self._upload("rgb", rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb)
+            self._upload("rgb", rgb)
             self.frame_size = (rgb.shape[1], rgb.shape[0])
         if frame.get("depth") is not None:
-            d = frame["depth"]
-            self._upload("depth", d)
-            valid = d[d > 0]
-            if valid.size:
-                self.depth_range = (float(np.percentile(valid, 1)), float(np.percentile(valid, 99)) + 1e-6)
+            self._upload("depth", frame["depth"])
+            self.depth_range = frame.get("depth_range") or self.depth_range
         if frame.get("feature_pca") is not None:
-            f = frame["feature_pca"]
-            self._upload("feature", f)
-            flat = f.reshape(-1, 3)
-            self.feature_range = (tuple(np.percentile(flat, 1, axis=0)), tuple(np.percentile(flat, 99, axis=0)))
+            self._upload("feature", frame["feature_pca"])
+            self.feature_range = frame.get("feature_range") or self.feature_range
         if frame.get("similarity") is not None:
             self.upload_similarity(frame["similarity"], frame.get("region"))
 
@@ -98,20 +141,21 @@ class Viewport:
                 tex = self.textures.pop(name, None)
                 if tex is not None:
                     tex.release()
+                if self._pending.pop(name, None) is not None or tex is not None:
                     self._uploads += 1
             else:
                 self._upload(name, data)
 
     def available_modes(self) -> list[str]:
         need = {"rgb": ["rgb"], "depth": ["depth"], "feature": ["feature"], "similarity": ["sim"], "mask": ["rgb", "sim"]}
-        return [m for m in MODES if all(n in self.textures for n in need[m])]
+        return [m for m in MODES if all(self.has(n) for n in need[m])]
 
     def draw(self, size: tuple[int, int], mode: str, threshold: float = 0.5) -> moderngl.Texture | None:
         """Draw `mode` for a viewport of `size` (w, h) pixels into the viewport texture and return it (None before
         a first frame); the caller shows the texture stretched over the viewport."""
         if mode not in self.available_modes():
             mode = "rgb"
-        if "rgb" not in self.textures:
+        if not self.has("rgb"):
             return None
         w, h = max(int(size[0]), 1), max(int(size[1]), 1)
         if mode in PER_PIXEL_MODES and self.frame_size is not None:
@@ -129,10 +173,10 @@ class Viewport:
         prog = self.programs[mode]
         units = {"rgb": ("rgb_tex", "rgb"), "depth": ("depth_tex", "depth"), "feature": ("feature_tex", "feature"),
                  "similarity": ("sim_tex", "sim"), "region": ("sim_tex", "region")}
-        names = {"mask": ["rgb", "region" if "region" in self.textures else "similarity"]}.get(mode, [mode])
+        names = {"mask": ["rgb", "region" if self.has("region") else "similarity"]}.get(mode, [mode])
         for unit, key in enumerate(names):
             uniform, tex = units[key]
-            self.textures[tex].use(location=unit)
+            self._texture(tex).use(location=unit)
             prog[uniform] = unit
         if mode == "depth":
             prog["near"], prog["far"] = self.depth_range
@@ -153,6 +197,7 @@ class Viewport:
         for tex in self.textures.values():
             tex.release()
         self.textures.clear()
+        self._pending.clear()
         if self.fbo is not None:
             self.fbo.release()
             self.color.release()

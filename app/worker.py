@@ -16,6 +16,7 @@ from typing import Any, Callable
 
 from repaint_nerf.app.feature_view import FeatureProjector
 from repaint_nerf.app.resolution import DynamicResolution
+from repaint_nerf.app.viewport import display_frame
 from repaint_nerf.core.device import thread_count, threads
 from repaint_nerf.core.errors import UserError, WorkspaceDamaged
 
@@ -291,6 +292,7 @@ class Worker:
         if data.get("feature") is not None and "feature" in req.outputs:
             data["feature_pca"] = self.projector(data["feature"])
         data.pop("feature", None)  # large; the UI only draws the projection
+        data = display_frame(data)  # here, not on the UI thread: at 780 px it cost a UI frame 15-49 ms
         if scale == self.controller.scale:
             self.controller.update(ms, at_scale=scale)
         if data.pop("capped", False):  # the engine's finest for this view: no further refinement

@@ -214,16 +214,21 @@ def egl_context_made() -> bool:
     return _egl_used
 
 
+def standalone_context(require: int = 330):
+    """A headless moderngl context on EGL, noted so that a window opened later in this process uses EGL as well."""
+    import moderngl
+
+    global _egl_used
+    _egl_used = True
+    return moderngl.create_standalone_context(backend="egl", require=require)
+
+
 class Rasterizer:
     """Renders lists of SceneObject from pinhole cameras with one standalone EGL context (use as a context manager)."""
 
     def __init__(self, width: int, height: int, near: float = 0.05, far: float = 50.0):
-        import moderngl
-
-        global _egl_used
         self.width, self.height, self.near, self.far = width, height, near, far
-        _egl_used = True
-        self.ctx = moderngl.create_standalone_context(backend="egl", require=330)
+        self.ctx = standalone_context()
         self.prog = self.ctx.program(vertex_shader=_VERT, fragment_shader=_FRAG)
         s = SUPERSAMPLE
         self.color = self.ctx.texture((width * s, height * s), 4, dtype="f4")
