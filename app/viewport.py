@@ -88,8 +88,8 @@ class Viewport:
 
     def _upload(self, name: str, data: np.ndarray) -> None:
         """Keep `data` as texture `name`'s next content; it goes to the GPU when a draw first reads it (`_texture`):
-        a frame's depth and feature maps are drawn only in their own view modes, and at 780 px uploading both cost
-        the UI thread 10 ms a frame."""
+        a frame's depth and feature maps are drawn only in their own view modes (at 780 px their 10 MB of floats
+        cost the UI thread about 3 ms a frame)."""
         self._pending[name] = data
         self._uploads += 1
 
@@ -118,7 +118,7 @@ class Viewport:
         """Take a render from the worker: 'rgb' (H,W,3; uint8 or float in [0, 1]), optional 'depth' (H,W),
         'feature_pca' (H,W,3), 'similarity' (H,W) and 'region', and the display ranges `display_frame` put there
         (computed here when missing)."""
-        if "rgb" not in frame or "depth_range" not in frame:
+        if "depth_range" not in frame:  # not made ready by the worker
             frame = display_frame(dict(frame))
         if "rgb" in frame:
             rgb = frame["rgb"]
