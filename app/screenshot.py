@@ -201,7 +201,8 @@ def _capture_pictures(app, args, out: Path, name: str) -> None:
     app.window.inject(mouse_event(app.image_origin[0] + 4, app.image_origin[1] + 4))  # the pointer off the panels:
     _shot(app, out / f"{name}_view.png")  # no tooltip in the picture
     s.tool = "select"
-    _until(app, lambda: app.shown_key == app.requested_key, 3600)
+    app.frame()  # the tool's request goes out (features ride along); before it the old view counts as shown
+    _until(app, lambda: _sharp(app), 3600)  # the patch selects from the sharp feature frame, as a user who looks
     _drag_patch(app, tuple(float(v) for v in args.patch.split(",")), lambda: None)
     _until(app, lambda: s.has_selection, 1800)
     _refreshed(app, 3600)

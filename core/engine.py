@@ -59,6 +59,9 @@ def editor_train_config(device: torch.device) -> TrainConfig:
     return TrainConfig(rays_per_batch=1024, grid_resolution=64, max_samples=256, grid_update_spread=True)
 
 
+SELECT_SIDE = 256.0  # px: the long side of the feature render a patch selects from when the view has none fine enough
+
+
 class FeatureView(NamedTuple):
     """A rendered view's maps a patch selection reads: features (H, W, F), median and expected z-depth and opacity
     (H, W) (core.select.masks.ViewMaps says which part reads which depth), and the camera (field space) at the size
@@ -289,10 +292,18 @@ class Engine:
 
     # ---- selection
     def _feature_view(self, cameras) -> "FeatureView":
-        if self._feature_cache is not None and self._feature_cache.key == self._camera_key(cameras):
-            return self._feature_cache
+        """The maps a patch on this view reads: the newest feature render of this camera, unless it is coarser
+        than the automatic threshold evaluates (`autothreshold.EVAL_SIDE`), as the first frame after switching to
+        the patch tool is (on the fox capture 49x27 or 61x34 px: the same patch took thresholds from 0.53 to 0.84
+        with the scale of the frame on screen); then a render of SELECT_SIDE px."""
+        from repaint_nerf.core.select.autothreshold import EVAL_SIDE
+
         side = max(int(cameras.width[0]), int(cameras.height[0]))
-        self.render(cameras, scale=min(1.0, 256.0 / side), outputs=("feature",))
+        cached = self._feature_cache
+        if (cached is not None and cached.key == self._camera_key(cameras)
+                and max(cached.feature.shape[:2]) >= min(side, EVAL_SIDE)):
+            return cached
+        self.render(cameras, scale=min(1.0, SELECT_SIDE / side), outputs=("feature",))
         return self._feature_cache
 
     def select(self, cameras, patch: tuple[float, float, float, float], mode: str = "new") -> PatchSelected:

@@ -172,3 +172,21 @@ def test_selection_needs_a_feature_head(scene_factory, tmp_path):
     assert not eng.has_feature_head()
     with pytest.raises(UserError, match="without a feature head"):
         eng.select(eng.info()["cameras"][0], (0.4, 0.4, 0.6, 0.6))
+
+
+def test_a_patch_selects_from_features_no_coarser_than_its_threshold_reads(engine, monkeypatch):
+    """A patch on a view whose newest feature render is coarse (the first frame after switching to the patch tool)
+    selects from a finer render, so its threshold does not depend on how soon the user dragged; a fine enough render
+    of the view is reused without rendering again."""
+    engine.train_for(0.2)
+    cams = engine.info()["cameras"][0]  # 24 px: under EVAL_SIDE, the view's own size is fine enough
+    coarse = engine.render(cams, scale=0.25, outputs=("rgb", "feature"))
+    assert coarse["feature"].shape[:2] == (6, 6)
+    sel = engine.select(cams, (0.4, 0.4, 0.6, 0.6))
+    assert sel.similarity.shape == (24, 24)
+    engine.render(cams, scale=1.0, outputs=("rgb", "feature"))
+    calls = []
+    real = engine.render
+    monkeypatch.setattr(engine, "render", lambda *a, **k: calls.append(k) or real(*a, **k))
+    assert engine.select(cams, (0.4, 0.4, 0.6, 0.6)).similarity.shape == (24, 24)
+    assert calls == [], "the view's fine feature render is reused"

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 
+EVAL_SIDE = 128  # px: a query's similarity map is evaluated at most this large (its long side), downsampled above
 GRID = np.round(np.arange(0.02, 0.985, 0.01), 2)  # thresholds tried (similarities of one query)
 JUMP_WINDOW = 2  # grid steps each side: a leak doubles the area within +-0.02
 JUMP_RATIO = 2.0
@@ -294,7 +295,7 @@ def patch_pixels(shape: tuple[int, int], rect) -> np.ndarray:
     return out
 
 
-def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: int = 128,
+def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: int = EVAL_SIDE,
                          edges: bool = True) -> float:
     """The automatic threshold of a patch query in the view it was drawn in: `similarity` (H, W), `patch`
     (a `Patch` in pixels, or image fractions), and, when given, that view's rendered z-depth and opacity,
@@ -305,14 +306,14 @@ def patch_auto_threshold(similarity, patch, depth=None, opacity=None, max_side: 
     return patch_auto_threshold_px(s, patch_pixels(s.shape, patch), depth, opacity, max_side, edges).value
 
 
-def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128,
+def patch_auto_threshold_px(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = EVAL_SIDE,
                             edges: bool = True):
     """`patch_auto_threshold` with the seed pixels given as a bool (H, W) mask; returns the AutoThreshold."""
     s, seeds, barrier, surface = _query_maps(similarity, seeds, depth, opacity, max_side, edges)
     return auto_threshold(s, seeds, barrier, surface=surface)
 
 
-def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = 128,
+def region_similarity(similarity, seeds: np.ndarray, depth=None, opacity=None, max_side: int = EVAL_SIDE,
                       edges: bool = True) -> np.ndarray:
     """The similarity map (H, W) kept only where the region grown from `seeds` through it reaches (as
     `patch_auto_threshold_px` grows it, at most `max_side` px, not across depth edges): float32 (H, W) whose
