@@ -45,7 +45,9 @@ def _percentiles(values: np.ndarray, qs: tuple[float, float]) -> np.ndarray:
 
 def display_frame(frame: dict) -> dict:
     """A render made ready to show, on the thread that rendered it: 'rgb' as uint8 (a quarter of the upload), and
-    the depth and feature maps' display ranges (1st to 99th percentile) as 'depth_range' and 'feature_range'."""
+    the depth and feature maps' display ranges (1st to 99th percentile) as 'depth_range' and 'feature_range'.
+    'depth_range' is always set (None without a depth map): `Viewport.upload_frame` reads it as the mark of a frame
+    made ready."""
     rgb = frame.get("rgb")
     if rgb is not None and rgb.dtype != np.uint8:
         frame["rgb"] = (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -315,8 +315,9 @@ def _draw_list_bytes(draw_list) -> tuple:
 
 def _render_lists(draw_data, lists: list, textures: bool = False) -> None:
     """Render some of a frame's draw lists, in order, with imgui's OpenGL backend into the bound framebuffer
-    (`textures`: this call also makes the frame's texture updates, e.g. new font glyphs)."""
-    if not lists:
+    (`textures`: this call also makes the frame's texture updates, e.g. new font glyphs, with no lists as well: a
+    cached panel first in the draw order left nothing before it to carry them)."""
+    if not lists and not textures:
         return
     part = imgui.ImDrawData()
     part.display_pos, part.display_size = draw_data.display_pos, draw_data.display_size

@@ -23,6 +23,7 @@ from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 from repaint_nerf.core.repaint import registry
 from repaint_nerf.core.repaint.config import RepaintConfig
 from repaint_nerf.core.repaint.trainer import RepaintTrainer
+from repaint_nerf.core.select.autothreshold import EVAL_SIDE
 from repaint_nerf.core.select.masks import (DEFAULT_THRESHOLD, FIRST_SURFACE, ViewCache, check_threshold, load_masks,
                                           masks_for_views)
 from repaint_nerf.core.select.selection import Selection
@@ -294,10 +295,8 @@ class Engine:
     def _feature_view(self, cameras) -> "FeatureView":
         """The maps a patch on this view reads: the newest feature render of this camera, unless it is coarser
         than the automatic threshold evaluates (`autothreshold.EVAL_SIDE`), as the first frame after switching to
-        the patch tool is (on the fox capture 49x27 or 61x34 px: the same patch took thresholds from 0.53 to 0.84
+        the patch tool is (on the fox capture 49x27 or 61x34 px: the same patch took thresholds from 0.665 to 0.84
         with the scale of the frame on screen); then a render of SELECT_SIDE px."""
-        from repaint_nerf.core.select.autothreshold import EVAL_SIDE
-
         side = max(int(cameras.width[0]), int(cameras.height[0]))
         cached = self._feature_cache
         if (cached is not None and cached.key == self._camera_key(cameras)

@@ -97,3 +97,42 @@ def test_bars_are_the_area_outside_the_picture():
         mask[int(y):int(y + h), int(x):int(x + w)] = True
     assert mask[10:60].all() and not mask[:10].any()
     assert _bars(area, area) == []
+
+
+def test_new_glyphs_reach_the_gpu_when_the_cached_panel_is_first(window):
+    """A window after an unchanged cached panel, first in the draw order, shows text in glyphs never drawn before
+    (imgui bakes them on demand, as a texture update that some render call must make): that frame uploads them, and
+    it looks as the full draw does."""
+    from imgui_bundle import imgui
+
+    picture = _picture(window.ctx)
+
+    def frame(later: str | None, cached: bool):
+        window.begin_frame()
+        imgui.set_next_window_pos(imgui.ImVec2(*PANEL[:2]))
+        imgui.set_next_window_size(imgui.ImVec2(*PANEL[2:]))
+        imgui.begin("Panel", None, imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize)
+        panel = imgui.get_window_draw_list()
+        imgui.text("step 1")
+        imgui.end()
+        if later is not None:
+            imgui.set_next_window_pos(imgui.ImVec2(20, 20))
+            imgui.set_next_window_size(imgui.ImVec2(300, 120))
+            imgui.begin("Later", None, imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize)
+            imgui.push_font(None, 31.0)  # a size no text had: every glyph of it is new
+            imgui.text(later)
+            imgui.pop_font()
+            imgui.end()
+        return window.end_frame(capture=True, underlay=(picture, PICTURE), cached=(panel, PANEL) if cached else None)
+
+    for _ in range(3):
+        frame(None, True)
+    shown = frame("Wq 7&", True)
+    textures = imgui.get_draw_data().textures
+    assert all(textures[i].status == imgui.ImTextureStatus.ok for i in range(textures.size())), \
+        "the frame that first drew the glyphs uploaded them"
+    for _ in range(2):
+        shown = frame("Wq 7&", True)
+    for _ in range(2):
+        drawn = frame("Wq 7&", False)
+    np.testing.assert_array_equal(shown, drawn)
