@@ -931,3 +931,23 @@ def test_the_overlay_fills_similarity_speckles_but_not_a_walled_hole():
     region = region_similarity(sim, seeds, depth, np.ones((h, w), np.float32))
     assert (region > 0.7)[_disc(h, w, 60, 110, 37) & ~_disc(h, w, 60, 110, 18)].mean() > 0.95
     assert not (region > 0.7)[hole].any()
+
+
+def test_otsu_threshold_matches_skimage_reference():
+    """Our Otsu split (kept here so the first patch does not import scipy.ndimage through skimage.filters) equals
+    skimage's threshold_otsu, the reference, on one-, two- and three-mode samples, uniform noise and values with
+    many ties."""
+    from skimage.filters import threshold_otsu
+
+    from repaint_nerf.core.select.autothreshold import otsu_threshold
+
+    rng = np.random.default_rng(1)
+    for i in range(60):
+        n = int(rng.integers(2, 3000))
+        v = np.concatenate([rng.normal(rng.uniform(0, 1), rng.uniform(0.01, 0.2), n)
+                            for _ in range(1 + i % 3)])
+        if i % 5 == 0:
+            v = rng.uniform(0, 1, n)
+        if i % 7 == 0:
+            v = np.round(v, 1)
+        assert otsu_threshold(v) == threshold_otsu(v)

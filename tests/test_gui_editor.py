@@ -326,6 +326,35 @@ def test_patch_selection_overlays_the_object_and_threshold_is_monotonic(editor, 
     editor.state.tool = "navigate"
 
 
+def test_a_patch_holds_training_until_its_mask_is_drawn(editor):
+    """From a patch's release to the frame that shows its mask no training step starts (one used to start on the
+    selection's reply and took both cores from that frame); training resumes once the mask is on screen."""
+    run_until(editor, lambda: full_frame(editor))
+    editor.state.tool = "select"
+    steps, real = [], editor.engine.train_for
+    editor.engine.train_for = lambda *a, **k: (steps.append(time.perf_counter()), real(*a, **k))[1]
+    try:
+        ox, oy = editor.image_origin
+        w, h = editor.view_size
+        cx, cy = ox + w / 2, oy + h / 2
+        frames(editor, 1, mouse(cx - 6, cy - 6))
+        frames(editor, 1, mouse(cx - 6, cy - 6, button=0, down=True))
+        frames(editor, 1, mouse(cx + 6, cy + 6))
+        editor.state.has_selection = False
+        frames(editor, 1, mouse(cx + 6, cy + 6, button=0, down=False))
+        released = time.perf_counter()
+        assert editor.worker.held, "the release keeps the worker held while its selection runs"
+        presented = editor.frames_presented
+        run_until(editor, lambda: editor.state.has_selection)
+        shown = time.perf_counter()
+        assert editor.frames_presented > presented and not editor.worker.held
+        assert not [t for t in steps if released <= t <= shown], "a training step started before the mask was drawn"
+        run_until(editor, lambda: any(t > shown for t in steps))  # and training goes on after it
+    finally:
+        editor.engine.train_for = real
+        editor.state.tool = "navigate"
+
+
 def test_a_refined_threshold_leaves_a_moved_slider_alone():
     from types import SimpleNamespace
 

@@ -437,12 +437,26 @@ def uses_edges(selection) -> bool:
     return parts_named(selection.geometry).edges
 
 
+def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
+    """Otsu's threshold of 1-D `values`: the centre of the histogram bin (of `bins` over their range) after which a
+    split maximises the between-class variance. Here and not skimage.filters': importing that module pulled in
+    scipy.ndimage and cost the first patch of a session 450 ms."""
+    counts, edges = np.histogram(values, bins=bins)
+    centres = (edges[:-1] + edges[1:]) / 2.0
+    counts = counts.astype(np.float64)
+    below = np.cumsum(counts)[:-1]  # weight of the class up to and including bin i
+    above = counts.sum() - below
+    sums = np.cumsum(counts * centres)[:-1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gap = sums / below - (float((counts * centres).sum()) - sums) / above
+    between = np.where((below > 0) & (above > 0), below * above * gap ** 2, -1.0)
+    return float(centres[int(np.argmax(between))])
+
+
 def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarray] | None = None) -> float:
     """The automatic threshold of a text query, which has no patch to grow from: Otsu's split of the
     similarities of every view's surface pixels (the object's mode against the rest), `FALLBACK` when the
     values are constant."""
-    from skimage.filters import threshold_otsu
-
     if surfaces is None:
         surfaces = [np.ones(np.shape(s), bool) for s in similarities]
     v = np.concatenate([np.asarray(s, np.float32)[np.asarray(m, bool)] for s, m in zip(similarities, surfaces)]
@@ -450,4 +464,4 @@ def text_auto_threshold(similarities: list[np.ndarray], surfaces: list[np.ndarra
     v = v[np.isfinite(v)].astype(np.float64)  # float32 bins of a narrow range near 1 are not distinct (numpy raises)
     if v.size < 2 or float(v.max() - v.min()) < 1e-6:
         return FALLBACK
-    return float(np.clip(threshold_otsu(v), 0.0, 1.0))
+    return float(np.clip(otsu_threshold(v), 0.0, 1.0))
