@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from repaint_nerf.app.feature_view import FeatureProjector
-from repaint_nerf.app.resolution import DynamicResolution
+from repaint_nerf.app.resolution import BAND, DynamicResolution
 from repaint_nerf.app.viewport import display_frame
 from repaint_nerf.core.device import thread_count, threads
 from repaint_nerf.core.errors import UserError, WorkspaceDamaged
@@ -28,8 +28,18 @@ PREVIEW_TRAIN_RATIO = 3.0  # seconds of training per second of preview rendering
 NAV_HOLD_S = 1.0
 # The first frame of a moved view renders in about this long (DynamicResolution's target): issue 33's goal is 50 ms
 # from the move to the frame on screen, and the UI's share is 11-13 ms (the request 1 ms; upload and a 1280x800 draw
-# on Mesa's llvmpipe 10-12 ms). The demo's moves took 55 ms at 40 and 44 ms at 35 (first frames at 0.28 / 0.24 scale)
-RENDER_TARGET_MS = 35.0
+# on Mesa's llvmpipe 10-12 ms). The demo's moves took 55 ms at 40 and 44 ms at 35 (first frames at 0.28 / 0.24 scale).
+# At 35 a later build's moves took 52.7 ms median (2026-12-06: the request 1.4, waiting for the render under way 3.1,
+# the render 36.7, the frame to the screen 12.4): the controller holds a render anywhere within 20% of its target,
+# up to 42 ms, so the target leaves that band's room under the goal.
+# A resting view refines by doubling its scale, but goes to its final scale (1, or the engine's cap) at once when the
+# doubled one would be within this factor of it: a step at 0.8 of the final costs 64% of the final render. Without it
+# the 30-ms target's lower first scale cost the demo one more step: its sharp feature frame after a tool switch took
+# 838-919 ms against 535-578 at 35 ms (the demo's cap is 2x its 128-px training size, 0.33 of its 781-px view).
+REFINE_SKIP = 2.0 ** 0.5
+MOVE_GOAL_MS = 50.0
+UI_SHARE_MS = 14.0  # the request, the wait for the render under way and the frame to the screen, measured above
+RENDER_TARGET_MS = (MOVE_GOAL_MS - UI_SHARE_MS) / (1.0 + BAND)  # 30 ms
 # Renders of a view the user is navigating (within NAV_HOLD_S of its request) run on this many CPU threads, so the
 # UI's drawing has a core: on 2 cores, torch's threads and Mesa llvmpipe's shared both and UI frames took 26-28 ms
 # at p99 against the goal of 16.7. Training, commands and the selection tool's feature frames (a patch waits for
@@ -259,7 +269,11 @@ class Worker:
             return 1.0
         if served_scale >= 1.0 or not resting:
             return None  # done, or the camera still moves: refine once it rests
-        return min(1.0, served_scale * 2.0)
+        finest = getattr(self.engine, "max_scale", None)
+        final = min(1.0, finest(req.cameras)) if finest is not None else 1.0
+        if served_scale * 2.0 * REFINE_SKIP >= final:
+            return 1.0  # the final picture now: the step between would cost most of it and show nearly the same
+        return served_scale * 2.0
 
     def _serve_render(self) -> bool:
         with self._lock:  # picking the request and marking it started is one step for `request_render`'s count

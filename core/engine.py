@@ -233,7 +233,9 @@ class Engine:
         self.paused = False
 
     # ---- rendering
-    def _max_scale(self, cameras) -> float:
+    def max_scale(self, cameras) -> float:
+        """The finest scale `render` gives camera 0 of `cameras` (the viewport's cap: MAX_RENDER_OVERSAMPLE times the
+        training resolution), which may be over 1."""
         w0, h0 = self.scene.train.images[0].shape[1], self.scene.train.images[0].shape[0]
         side = float(max(int(cameras.width[0]), int(cameras.height[0])))
         return max(MAX_RENDER_OVERSAMPLE * max(w0, h0) / side, 1e-3)
@@ -249,9 +251,9 @@ class Engine:
             want = want + ("feature",)
         if "feature" in want:  # a patch drawn on this view needs its surface points and edges (FeatureView)
             want = want + tuple(o for o in ("depth", "median_depth", "opacity") if o not in want)
-        capped = not full and scale >= self._max_scale(cameras)
+        capped = not full and scale >= self.max_scale(cameras)
         if capped:
-            scale = self._max_scale(cameras)
+            scale = self.max_scale(cameras)
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
                              max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
                              t_threshold=DISPLAY_T_THRESHOLD,

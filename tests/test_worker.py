@@ -228,3 +228,26 @@ def test_feature_frames_keep_every_thread(monkeypatch):
     finally:
         worker.stop()
     assert engine.render_threads[0][1] == 2
+
+
+def test_a_resting_view_refines_by_doubling_and_skips_a_step_near_its_final_scale():
+    """Refinement doubles the scale, but renders the final picture at once when the doubled scale would be within
+    worker.REFINE_SKIP of the final one (the engine's cap, or 1): a step at 0.8 costs 64% of the final render."""
+    from types import SimpleNamespace
+
+    from repaint_nerf.app.worker import RenderRequest
+
+    engine = SimpleNamespace(max_scale=lambda cameras: cameras)  # the request's 'cameras' is its cap here
+    worker = Worker(engine, rest_s=0.0)
+
+    def next_after(served: float, cap: float) -> float | None:
+        req = RenderRequest(cap, key=(cap,), serial=1, time=0.0)
+        worker._served = (1, served)
+        return worker._next_scale(req)
+
+    assert next_after(0.1, 1.0) == 0.2
+    assert next_after(0.3, 1.0) == 0.6
+    assert next_after(0.4, 1.0) == 1.0  # not 0.8
+    assert next_after(0.07, 0.33) == 0.14
+    assert next_after(0.14, 0.33) == 1.0  # the engine caps it at 0.33, not a step at 0.28 first
+    assert next_after(1.0, 1.0) is None
