@@ -28,6 +28,9 @@ def trained_ws(scene_factory, tmp_path_factory):
     rec.trainer.train(steps=12)
     rec.trainer.save_checkpoint()
     rec.trainer.save_version("reconstruction")
+    # Its teacher thread would go on caching features into the workspace, and a test's copytree of it failed when a
+    # temporary file it listed had been renamed before it was copied (seen once in CI).
+    rec.trainer.close()
     return ws_root, rec
 
 
