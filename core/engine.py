@@ -251,9 +251,10 @@ class Engine:
             want = want + ("feature",)
         if "feature" in want:  # a patch drawn on this view needs its surface points and edges (FeatureView)
             want = want + tuple(o for o in ("depth", "median_depth", "opacity") if o not in want)
-        capped = not full and scale >= self.max_scale(cameras)
+        finest = self.max_scale(cameras)
+        capped = not full and scale >= finest
         if capped:
-            scale = self.max_scale(cameras)
+            scale = finest
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
                              max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
                              t_threshold=DISPLAY_T_THRESHOLD,

@@ -444,11 +444,11 @@ def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
     counts, edges = np.histogram(values, bins=bins)
     centres = (edges[:-1] + edges[1:]) / 2.0
     counts = counts.astype(np.float64)
-    below = np.cumsum(counts)[:-1]  # weight of the class up to and including bin i
-    above = counts.sum() - below
-    sums = np.cumsum(counts * centres)[:-1]
+    weights, moments = np.cumsum(counts), np.cumsum(counts * centres)
+    below, sums = weights[:-1], moments[:-1]  # the class up to and including bin i: its weight and first moment
+    above = weights[-1] - below
     with np.errstate(divide="ignore", invalid="ignore"):
-        gap = sums / below - (float((counts * centres).sum()) - sums) / above
+        gap = sums / below - (moments[-1] - sums) / above
     between = np.where((below > 0) & (above > 0), below * above * gap ** 2, -1.0)
     return float(centres[int(np.argmax(between))])
 
