@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -187,3 +188,80 @@ def test_cell_index_matches_a_plain_floor_and_flatten(resolution, cascade):
     assert int(differ[:20000].sum()) <= 2 and not bool(differ[20000:].any())
     nan = int(grid._cell_index(torch.tensor([[float("nan"), 0.0, 0.0]]), cascade)[0])
     assert 0 <= nan < r ** 3  # a valid cell, never an index past the grid
+
+
+def _arc_cameras() -> Cameras:
+    """Three narrow cameras on one side of the cube, looking at its centre: much of the cube is out of view."""
+    eyes = [(0.0, 0.0, 3.0), (1.0, 0.0, 2.8), (-1.0, 0.3, 2.8)]
+    c2w = np.stack([look_at(e, (0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)) for e in eyes])
+    return Cameras.create(c2w, 120.0, 120.0, 16.0, 12.0, 32, 24)
+
+
+def _seen_by_dense_points(grid: OccupancyGrid, cams: Cameras, per_axis: int = 4) -> torch.Tensor:
+    """Reference visibility: a cell is seen when any of per_axis^3 points spread through it (faces included)
+    projects inside an image in front of its camera."""
+    r, e = grid.resolution, grid.cascade_extent(0)
+    i = torch.arange(r, dtype=torch.float32)
+    cell = torch.stack(torch.meshgrid(i, i, i, indexing="ij"), -1).reshape(-1, 1, 3)
+    f = torch.linspace(0.0, 1.0, per_axis)
+    off = torch.stack(torch.meshgrid(f, f, f, indexing="ij"), -1).reshape(1, -1, 3)
+    y = ((cell + off) * (2 * e / r) - e).reshape(-1, 3)
+    x = grid.warp.inverse(y) if grid.warp is not None else y
+    uv, z = cams.project_views(x, torch.arange(len(cams)))
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] <= cams.width[:, None]) & (uv[..., 1] >= 0) \
+        & (uv[..., 1] <= cams.height[:, None])
+    return inside.any(0).view(r ** 3, -1).any(1)
+
+
+@pytest.mark.parametrize("warp", [None, "contract"])
+def test_cells_no_camera_sees_are_never_occupied_nor_evaluated(warp):
+    """restrict_to_views keeps every cell a camera sees (against dense points through each cell), drops cells
+    more than two cells from any seen one, and updates then evaluate and occupy only the kept cells."""
+    from repaint_nerf.core.field.contraction import ContractWarp
+
+    grid = OccupancyGrid(resolution=16, device="cpu", warmup_steps=32,
+                         warp=ContractWarp() if warp else None, march_extent=16.0 if warp else None)
+    cams = _arc_cameras()
+    fraction = grid.restrict_to_views(cams)
+    seen = grid.visible[0]
+    assert 0.05 < fraction < 0.9 and fraction == pytest.approx(float(seen.float().mean()))
+    ref = _seen_by_dense_points(grid, cams)
+    assert bool(seen[ref].all())  # conservative: nothing seen is dropped
+    near = torch.nn.functional.max_pool3d(ref.view(1, 1, 16, 16, 16).float(), 5, stride=1, padding=2)
+    assert not bool((seen & (near.reshape(-1) == 0)).any())  # and tight to within two cells
+    assert torch.equal(grid.occupied[0], seen)
+
+    points = []
+
+    def fog(x):
+        points.append(x)
+        return torch.full((x.shape[0],), 50.0)
+
+    grid.update(0, fog)
+    x = torch.cat(points)
+    assert x.shape[0] == int(seen.sum())
+    assert bool(grid.visible[0, grid._cell_index(grid.to_grid(x), 0)].all())
+    assert torch.equal(grid.occupied[0], seen)  # fog everywhere, yet only where a camera looks
+    assert grid.threshold() == pytest.approx(min(float(grid.density[0][seen].mean()), 0.01 / grid.min_step))
+    points.clear()
+    grid.update(48, fog)  # past warm-up: a quarter of the seen cells and as many occupied ones
+    m = int(seen.sum())
+    assert sum(p.shape[0] for p in points) == m // 4 + m // 4
+    grid.mark_occupied(torch.tensor([[0.0, 0.0, -0.95]]))  # behind the object, out of every view
+    assert torch.equal(grid.occupied[0], seen)
+
+
+def test_visibility_survives_a_checkpoint_and_older_states_keep_the_grids_own():
+    field = SphereField(radius=0.4, sigma=20.0)
+    grid = OccupancyGrid(resolution=16, device="cpu")
+    grid.restrict_to_views(_arc_cameras())
+    _warm(grid, field.density, 32)
+    other = OccupancyGrid(resolution=16, device="cpu")
+    other.load_state_dict(grid.state_dict())
+    assert torch.equal(other.visible, grid.visible) and torch.equal(other.occupied, grid.occupied)
+    older = {k: v for k, v in grid.state_dict().items() if k != "visible"}
+    older["occupied"] = torch.ones_like(grid.occupied)
+    mine = OccupancyGrid(resolution=16, device="cpu")
+    mine.restrict_to_views(_arc_cameras())
+    mine.load_state_dict(older)
+    assert torch.equal(mine.occupied, grid.visible)  # the state's cells, less those this grid never sees

@@ -233,6 +233,7 @@ def test_warped_scene_trains_saves_and_renders(tmp_path, preset, kind):
     tr.checkpoint().save(path)
     field, grid, _ = restore_field(Checkpoint.load(path, "cpu"), "cpu")
     assert field.cfg.warp == tr.field_cfg.warp and grid.extent == tr.grid.extent
+    assert torch.equal(grid.visible, tr.grid.visible) and not bool(grid.visible.all())  # no camera sees it all
     cams = scene.field_cameras("test")
     opts = RenderOptions(outputs=("rgb",), max_samples=tr.cfg.max_samples)
     tr.field.eval()

@@ -4,6 +4,7 @@ Each cascade c is a resolution^3 grid over the cube [-bound*2^c, bound*2^c]^3 ho
 maximum of sampled density (`density`) and a boolean `occupied` field derived from it by a threshold.
 For a field with a space warp (unbounded or forward-facing scenes) the grid has one cascade over the
 warped cube [-1, 1]^3: lookups warp their field-space points first, updates unwarp the cell points.
+Cells that no training camera sees (`restrict_to_views`) are never occupied nor evaluated.
 """
 from __future__ import annotations
 
@@ -56,6 +57,8 @@ class OccupancyGrid:
         n = self.resolution ** 3
         self.density = torch.zeros(self.cascades, n, device=self.device)
         self.occupied = torch.ones(self.cascades, n, dtype=torch.bool, device=self.device)
+        self.visible = torch.ones(self.cascades, n, dtype=torch.bool, device=self.device)  # restrict_to_views
+        self._visible_idx: list[Tensor] | None = None  # per cascade, its visible cells; None: all are
         self.mean_density = 0.0
         self._version = 0
         self._dilated: dict[tuple, Tensor] = {}
@@ -244,6 +247,7 @@ class OccupancyGrid:
         (default twice the threshold), so new content is marched before the next update sees it.
         Returns the number of cells marked."""
         cells = self._cell_index(self.to_grid(x.to(self.device)), 0).unique()
+        cells = cells[self.visible[0, cells]]
         lvl = max(2.0 * float(self.threshold()), 1e-3) if level is None else float(level)
         self.density[0, cells] = torch.clamp_min(self.density[0, cells], lvl)
         self.occupied[0, cells] = True
@@ -251,17 +255,21 @@ class OccupancyGrid:
         return int(cells.numel())
 
     def _update_cells(self, step: int) -> list[Tensor]:
-        """Per cascade, the cells an update evaluates: all during warm-up, else 1/4 uniform + 1/4 occupied."""
+        """Per cascade, the cells an update evaluates: all visible ones during warm-up, else 1/4 of them uniformly
+        + as many occupied ones."""
         n = self.resolution ** 3
         cells = []
         for c in range(self.cascades):
+            seen = self._visible_idx[c] if self._visible_idx is not None else None
+            m = n if seen is None else seen.numel()
             if step < self.warmup_steps:
-                idx = torch.arange(n, device=self.device)
+                idx = torch.arange(n, device=self.device) if seen is None else seen
             else:
-                idx = torch.randint(0, n, (n // 4,), device=self.device)
+                idx = torch.randint(0, n, (n // 4,), device=self.device) if seen is None \
+                    else seen[torch.randint(0, m, (m // 4,), device=self.device)]
                 occ = self.occupied[c].nonzero(as_tuple=True)[0]
                 if occ.numel():
-                    idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (n // 4,), device=self.device)]])
+                    idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (m // 4,), device=self.device)]])
             cells.append(idx)
         return cells
 
@@ -276,11 +284,62 @@ class OccupancyGrid:
     def _apply(self, fresh: Tensor) -> None:
         self._seeded = True
         self.density = torch.maximum(self.density * self.decay, fresh)
-        self.mean_density = float(self.density[0].mean())
+        self.mean_density = self._visible_mean()
         self.occupied = self.density > self.threshold()
         if self._reopen is not None:  # open for one period; their density is untouched, so the next
             self.occupied |= self._reopen  # update prunes them again unless the field has filled them
             self._reopen = None
+        if self._visible_idx is not None:
+            self.occupied &= self.visible
+        self._version += 1
+
+    def _visible_mean(self) -> float:
+        """Mean density of cascade 0's visible cells: the unseen ones hold no content, so they do not lower the
+        threshold."""
+        d = self.density[0]
+        return float(d.mean() if self._visible_idx is None else d[self._visible_idx[0]].mean())
+
+    @torch.no_grad()
+    def restrict_to_views(self, cameras) -> float:
+        """Never occupy (nor evaluate) a cell that no camera of `cameras` (field space) sees; returns the visible
+        fraction of the cells.
+
+        Why: content only trains where some training ray passes, so elsewhere an update can only find fog the
+        field was initialised with. Seen from a new angle (an orbit behind a capture's arc), that fog costs
+        samples and looks like floaters. instant-ngp marks such cells untrained the same way: a cell is seen
+        when one of its 8 corners projects inside an image in front of its camera; here also when a neighbour
+        is, so that a frustum's tip slipping between corners keeps its cells."""
+        cams = cameras.to(self.device)
+        r = self.resolution
+        visible = torch.zeros_like(self.visible)
+        ax = torch.arange(r + 1, device=self.device, dtype=torch.float32)
+        corner = torch.stack(torch.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3)
+        for c in range(self.cascades):
+            e = self.cascade_extent(c)
+            y = corner * (2.0 * e / r) - e
+            x = self.warp.inverse(y.clamp(-e * (1 - 1e-6), e * (1 - 1e-6))) if self.warp is not None else y
+            seen = torch.zeros(x.shape[0], dtype=torch.bool, device=self.device)
+            left = torch.arange(x.shape[0], device=self.device)
+            for v in range(len(cams)):  # each camera projects only the corners no earlier one saw
+                uv, z = cams.project(x[left], v)
+                hit = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= float(cams.width[v])) & (uv[:, 1] >= 0) \
+                    & (uv[:, 1] <= float(cams.height[v]))
+                seen[left[hit]] = True
+                left = left[~hit]
+                if left.numel() == 0:
+                    break
+            g = F.max_pool3d(seen.view(1, 1, r + 1, r + 1, r + 1).float(), 2, stride=1)  # any corner
+            g = F.max_pool3d(g, 3, stride=1, padding=1)  # or a neighbour's
+            visible[c] = g.reshape(-1) > 0
+        self._set_visible(visible)
+        return float(visible.float().mean())
+
+    def _set_visible(self, visible: Tensor) -> None:
+        """Take `visible` (cascades, resolution^3) bool as the cells that may hold content; clear the others."""
+        self.visible = visible
+        self._visible_idx = None if bool(visible.all()) else [v.nonzero(as_tuple=True)[0] for v in visible]
+        self.density.mul_(visible)
+        self.occupied &= visible
         self._version += 1
 
     @torch.no_grad()
@@ -349,6 +408,7 @@ class OccupancyGrid:
         """Tensors for a checkpoint (safetensors-compatible)."""
         return {"density": self.density.detach().cpu().clone(),
                 "occupied": self.occupied.detach().cpu().clone(),
+                "visible": self.visible.detach().cpu().clone(),
                 "mean_density": torch.tensor([self.mean_density], dtype=torch.float64)}
 
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
@@ -363,6 +423,9 @@ class OccupancyGrid:
                                 hint="create the grid with the checkpoint's resolution and cascades")
         self.density = state["density"].to(self.device, torch.float32).clone()
         self.occupied = state["occupied"].to(self.device).bool().clone()
+        seen = state.get("visible")  # older checkpoints have none: the visibility this grid has stays
+        self._set_visible(seen.to(self.device).bool().clone() if seen is not None
+                          and tuple(seen.shape) == tuple(self.visible.shape) else self.visible)
         md = state.get("mean_density")
         self.mean_density = float(md.reshape(-1)[0]) if md is not None else float(self.density[0].mean())
         self._version += 1

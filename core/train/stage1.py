@@ -316,6 +316,7 @@ class Stage1Trainer:
         self.grid = grid_for_field(self.field, self.cfg.grid_resolution, self.cfg.grid_cascades, device=self.device,
                                    update_every=self.cfg.grid_update_every, warmup_steps=self.cfg.grid_warmup_steps,
                                    spread=self.cfg.grid_update_spread)
+        self.grid.restrict_to_views(self.cameras)  # content trains only where training rays pass
         if self.cfg.early_max_samples is None:
             fine = self.grid.warp is not None or self.depth is not None
             early = EARLY_SAMPLES_FINE if fine else EARLY_SAMPLES
