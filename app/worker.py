@@ -291,12 +291,13 @@ class Worker:
         cancel = self._stop.is_set if first else self._stale(req.serial)
         navigating = self._navigating() and "feature" not in req.outputs
         narrow = navigating and not self.nav_costly and self.nav_threads is not None
+        stride = self.controller.stride if first and navigating else 1.0  # a resting view refines at the full step
         t0 = time.perf_counter()
         with threads(self.nav_threads if narrow else None):
-            data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel)
+            data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel, stride=stride)
         ms = (time.perf_counter() - t0) * 1000.0
         if first and navigating and data is not None:
-            self._judge_nav_cost(ms, scale, narrow)
+            self._judge_nav_cost(ms, scale, stride, narrow)
         self._last_render_s = ms / 1000.0
         if data is None:  # cancelled by a newer request, a command or a gesture
             self.cancelled += 1
@@ -308,26 +309,28 @@ class Worker:
         data.pop("feature", None)  # large; the UI only draws the projection
         data = display_frame(data)  # here, not on the UI thread: at 780 px it cost a UI frame 15-49 ms
         if scale == self.controller.scale:
-            self.controller.update(ms, at_scale=scale)
+            self.controller.update(ms, at_scale=scale, at_stride=stride)
         if data.pop("capped", False):  # the engine's finest for this view: no further refinement
             scale = 1.0
         self._served = (req.serial, scale)
         self._publish(Frame(req.key, scale, data, ms, req.time, req.serial, scale >= 1.0))
         return True
 
-    def _judge_nav_cost(self, ms: float, scale: float, narrow: bool) -> None:
-        """Switch navigating frames to every thread when nav_threads cannot hold the target at the scale floor,
-        and back once a frame on every thread says nav_threads would hold it there with room (NAV_COSTLY_RATIO).
+    def _judge_nav_cost(self, ms: float, scale: float, stride: float, narrow: bool) -> None:
+        """Switch navigating frames to every thread when nav_threads cannot hold the target at the scale floor and
+        the longest step, and back once a frame on every thread says nav_threads would hold it there with room
+        (NAV_COSTLY_RATIO).
 
         The controller raises the scale until frames take about the target, so a frame's own time never falls
-        well under it: the release compares the frame's cost scaled to the floor's pixels and to one thread
-        (as if the other threads did nothing), a conservative estimate of what a narrow frame at the floor costs."""
+        well under it: the release compares the frame's cost scaled to the floor's pixels, the longest step and
+        one thread (as if the other threads did nothing), a conservative estimate of what a narrow frame at the
+        floor costs."""
         c = self.controller
-        if narrow and scale <= c.min_scale and ms > NAV_COSTLY_RATIO * c.target_ms:
+        if narrow and scale <= c.min_scale and stride >= c.max_stride and ms > NAV_COSTLY_RATIO * c.target_ms:
             self.nav_costly = True
         elif not narrow and self.nav_costly:
-            at_floor = ms * min(1.0, (c.min_scale / max(scale, 1e-9)) ** 2) * thread_count() \
-                / thread_count(self.nav_threads)
+            at_floor = ms * min(1.0, (c.min_scale / max(scale, 1e-9)) ** 2) * stride / c.max_stride \
+                * thread_count() / thread_count(self.nav_threads)
             if at_floor * NAV_COSTLY_RATIO < c.target_ms:
                 self.nav_costly = False
 

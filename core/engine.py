@@ -241,10 +241,11 @@ class Engine:
         return max(MAX_RENDER_OVERSAMPLE * max(w0, h0) / side, 1e-3)
 
     def render(self, cameras, scale: float = 1.0, outputs: tuple = ("rgb", "depth"),
-               cancel: Callable[[], bool] | None = None, full: bool = False) -> dict | None:
+               cancel: Callable[[], bool] | None = None, full: bool = False, stride: float = 1.0) -> dict | None:
         """Render camera 0 of `cameras` (field space) at `scale`: numpy 'rgb' (H,W,3), 'depth', 'feature',
         'similarity' (when something is selected). The viewport is capped at twice the training resolution
-        unless `full`; returns None when `cancel()` turned true."""
+        unless `full`; `stride` > 1 marches a coarser step (a moving view's preview); returns None when
+        `cancel()` turned true."""
         self._need_scene()
         want = tuple(o for o in outputs if o != "feature" or self.has_feature_head())
         if self.selection is not None and "feature" not in want and self.has_feature_head():
@@ -257,7 +258,7 @@ class Engine:
             scale = finest
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
                              max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
-                             t_threshold=DISPLAY_T_THRESHOLD,
+                             t_threshold=DISPLAY_T_THRESHOLD, step_stride=stride,
                              feature_first_surface=FIRST_SURFACE)  # as the selection's views read it
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
             opts.chunk = (INTERACTIVE_CHUNK_CUDA if self.device.type == "cuda"

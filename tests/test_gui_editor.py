@@ -77,7 +77,7 @@ class AnalyticEngine:
             return 0.5 * (self.versions[self.current] + self.edit_target)
         return self.versions[self.current]
 
-    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
         self.renders += 1
         time.sleep(self.render_delay)
         if self.fail_render_after is not None and self.renders > self.fail_render_after:

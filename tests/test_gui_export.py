@@ -33,7 +33,7 @@ class ExportingEngine(AnalyticEngine):
         super().__init__()
         self.scene = SimpleNamespace(norm=Normalization(np.array([1.0, 0.0, 0.0]), 0.5))
 
-    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, full=False):
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, full=False, stride=1.0):
         return super().render(cameras, scale, outputs, cancel)
 
     def export_mesh(self, path, selection=False, resolution=256, cancel=None, progress=None):

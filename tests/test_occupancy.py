@@ -265,3 +265,19 @@ def test_visibility_survives_a_checkpoint_and_older_states_keep_the_grids_own():
     mine.restrict_to_views(_arc_cameras())
     mine.load_state_dict(older)
     assert torch.equal(mine.occupied, grid.visible)  # the state's cells, less those this grid never sees
+
+
+def test_a_longer_step_marches_proportionally_fewer_samples_for_a_close_picture():
+    """step_stride (a moving view's preview) multiplies the step: twice the stride, about half the samples in the
+    occupied cells, and the sphere's picture within 30 dB of the normal step's; a stride under 1 is refused."""
+    field = SphereField(radius=0.5, sigma=8.0, color_slope=2.0)
+    grid = OccupancyGrid(resolution=32, device="cpu")
+    _warm(grid, field.density)
+    cams = Cameras.create(look_at((0.3, -2.5, 0.8), (0, 0, 0)), 50, 50, 24, 24, 48, 48)
+    base = render_camera(field, grid, cams, 0, RenderOptions(background=torch.ones(3), max_samples=512))
+    long = render_camera(field, grid, cams, 0, RenderOptions(background=torch.ones(3), max_samples=512,
+                                                             step_stride=2.0))
+    assert 0.4 < long["stats"]["samples"] / base["stats"]["samples"] < 0.6
+    assert psnr(long["rgb"], base["rgb"]) > 30.0
+    with pytest.raises(UserError, match="step_stride"):
+        render_camera(field, grid, cams, 0, RenderOptions(step_stride=0.5))

@@ -55,3 +55,26 @@ def test_the_first_view_renders_a_bounded_number_of_rays_then_the_measured_time_
     assert DynamicResolution(scale=0.25).for_view(10 ** 9) == 1.0 / 16.0  # never below the floor
     c.update(1.0, at_scale=s)  # far faster than the target: the next views render finer than the cap
     assert c.for_view(439 * 781) > s
+
+
+def test_below_the_floor_the_step_lengthens_and_on_the_way_back_shortens_first():
+    """A frame's cost goes with scale^2 / stride: a view too costly at the 1/16 floor converges on a longer step
+    (within MAX_STRIDE) at the floor, and when it gets cheap the stride returns to 1 before the scale rises."""
+    from repaint_nerf.app.resolution import MAX_STRIDE, MIN_SCALE
+
+    c = DynamicResolution(target_ms=20.0, scale=0.25)
+    full = 20.0 * 2.5 / MIN_SCALE ** 2  # at the floor and the normal step: 2.5x the target
+
+    def frame(cost: float) -> None:
+        c.update(cost * c.scale ** 2 / c.stride)
+        assert c.stride == 1.0 or c.scale == MIN_SCALE  # a longer step only at the floor
+        assert 1.0 <= c.stride <= MAX_STRIDE
+
+    for _ in range(8):
+        frame(full)
+    assert c.scale == MIN_SCALE and abs(full * MIN_SCALE ** 2 / c.stride - 20.0) <= 0.2 * 20.0
+    frame(full / 100.0)  # trained: 40x cheaper than the target needs at the floor
+    assert c.stride == 1.0 and c.scale > MIN_SCALE
+    for _ in range(8):
+        frame(full * 100.0)  # never held: the stride stops at its cap
+    assert c.scale == MIN_SCALE and c.stride == MAX_STRIDE

@@ -15,7 +15,7 @@ class SlowEngine:
         self.log: list[tuple[tuple, float, str]] = []
         self.current: tuple | None = None
 
-    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
         for _ in range(20):
             if cancel is not None and cancel():
                 self.log.append((cameras, scale, "cancelled"))
@@ -99,7 +99,7 @@ class ThreadEngine(SlowEngine):
         self.render_threads: list[tuple[float, int]] = []
         self.train_threads: list[int] = []
 
-    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
         import torch
 
         self.render_threads.append((scale, torch.get_num_threads()))
@@ -147,7 +147,7 @@ class TimedEngine(ThreadEngine):
         super().__init__()
         self.delay = delay
 
-    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None):
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
         import torch
 
         self.render_threads.append((scale, torch.get_num_threads()))
@@ -200,15 +200,20 @@ def test_costly_navigation_ends_when_one_thread_would_hold_the_target(monkeypatc
 
     monkeypatch.setattr(torch, "get_num_threads", lambda: 2)
     worker = Worker(ThreadEngine(), target_ms=20.0, nav_threads=1)
-    floor = worker.controller.min_scale
-    worker._judge_nav_cost(40.0, floor, narrow=True)  # 2x the target on one thread at the floor
-    assert worker.nav_costly
-    worker._judge_nav_cost(20.0, 1.1 * floor, narrow=False)  # on one thread at the floor: ~33 ms
-    assert worker.nav_costly
-    worker._judge_nav_cost(20.0, 3.0 * floor, narrow=False)  # ~4.4 ms
+    floor, top = worker.controller.min_scale, worker.controller.max_stride
+    worker._judge_nav_cost(40.0, floor, 1.0, narrow=True)  # 2x the target, but the step can still lengthen
     assert not worker.nav_costly
-    worker._judge_nav_cost(40.0, floor, narrow=True)
+    worker._judge_nav_cost(40.0, floor, top, narrow=True)  # 2x the target on one thread at the floor and top stride
     assert worker.nav_costly
+    worker._judge_nav_cost(20.0, 1.1 * floor, top, narrow=False)  # on one thread at the floor: ~33 ms
+    assert worker.nav_costly
+    worker._judge_nav_cost(20.0, 3.0 * floor, top, narrow=False)  # ~4.4 ms
+    assert not worker.nav_costly
+    worker._judge_nav_cost(40.0, floor, top, narrow=True)
+    assert worker.nav_costly
+    worker._judge_nav_cost(20.0, floor, 1.0, narrow=False)  # at the top stride on one thread: ~10 ms
+    assert not worker.nav_costly
+    worker._judge_nav_cost(40.0, floor, top, narrow=True)
     worker.forget_costs()
     assert not worker.nav_costly
 
@@ -251,3 +256,36 @@ def test_a_resting_view_refines_by_doubling_and_skips_a_step_near_its_final_scal
     assert next_after(0.07, 0.33) == 0.14
     assert next_after(0.14, 0.33) == 1.0  # the engine caps it at 0.33, not a step at 0.28 first
     assert next_after(1.0, 1.0) is None
+
+
+class StrideEngine(TimedEngine):
+    """Records the marching stride of each render."""
+
+    def __init__(self, delay: float) -> None:
+        super().__init__(delay)
+        self.strides: list[tuple[float, float, tuple]] = []
+
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
+        self.strides.append((scale, stride, tuple(outputs)))
+        return super().render(cameras, scale, outputs, cancel, stride)
+
+
+def test_a_moving_view_at_the_floor_marches_the_controllers_stride_and_its_refinement_the_full_step():
+    """The controller lengthens the step only at the scale floor; the first frame of a navigated view renders with
+    it, while the resting view's refinements and the selection tool's feature frames march the normal step."""
+    engine = StrideEngine(delay=0.02)  # at the 20 ms target: the controller keeps its scale and stride
+    worker = Worker(engine, target_ms=20.0, rest_s=0.05, nav_hold_s=5.0, nav_threads=None)
+    worker.controller.scale, worker.controller.stride = worker.controller.min_scale, 3.0
+    worker.controller.measured = True
+    worker.start()
+    try:
+        worker.request_render("a", key=("a",))
+        _frames(worker, lambda fs: any(f.final for f in fs))
+        worker.request_render("b", key=("b",), outputs=("rgb", "feature"))
+        _frames(worker, lambda fs: len(fs) >= 1)
+    finally:
+        worker.stop()
+    first, *refined = [e for e in engine.strides if "feature" not in e[2]]
+    assert first[:2] == (worker.controller.min_scale, 3.0)
+    assert refined and all(stride == 1.0 for _, stride, _ in refined) and refined[-1][0] == 1.0
+    assert [stride for _, stride, out in engine.strides if "feature" in out][0] == 1.0

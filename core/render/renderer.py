@@ -42,6 +42,7 @@ class RenderOptions:
     perturb: bool = False  # jitter each sample inside its step (training)
     chunk: int = 1 << 18  # memory budget: candidate samples alive at once
     step_size: float | None = None  # None: 2*sqrt(3)*bound/max_samples (instant-ngp's rule)
+    step_stride: float = 1.0  # the step's multiple: a moving view's preview marches coarser (app.resolution)
     near: float = 0.0  # rays start no earlier than this distance
     strategy: str = "auto"  # auto | filter (2 passes; always with grad) | rounds (1 pass, no grad)
     seg_steps: int = 16  # steps per coarse skipping segment
@@ -104,6 +105,8 @@ def _check(opts: RenderOptions) -> None:
                         f"(got {opts.max_samples}, {opts.seg_steps}, {opts.seg_window}, {opts.chunk})")
     if not 0.0 <= opts.t_threshold < 1.0:
         raise UserError(f"t_threshold must be in [0, 1) (got {opts.t_threshold})")
+    if not opts.step_stride >= 1.0:
+        raise UserError(f"step_stride must be >= 1 (got {opts.step_stride})")
 
 
 def _field_bound(field) -> float:
@@ -257,7 +260,7 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
     strategy = "filter" if opts.strategy == "filter" or _needs_grad(field) or "distortion" in opts.outputs \
         else "rounds"
     bound, extent, cone = _march_params(field, grid)
-    step = opts.step_size or default_step(bound, opts.max_samples)
+    step = (opts.step_size or default_step(bound, opts.max_samples)) * opts.step_stride
     if cone > 0.0:  # steps start growing no farther than one field unit out (coarse steps: sooner)
         cone = max(cone, step / CONE_KNEE)
     # warped fields reach far content with growing steps; the cap leaves room for them past the unit cube
