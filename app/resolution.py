@@ -19,9 +19,9 @@ from dataclasses import dataclass
 MIN_SCALE = 1.0 / 16.0
 MAX_SCALE = 1.0
 BAND = 0.2
-# At the 1/16 floor, renders of the fox capture 100 steps into training (17 orbit views of `bench viewport`): the step at 2x took
-# 0.60 of the time and differed from the normal step's picture by 35 dB PSNR (median; 31 at worst), at 4x 0.38 and
-# 30 dB (24 at worst)
+# At the 1/16 floor, renders of the fox capture 100 steps into training (17 orbit views of `bench viewport`): the
+# step at 2x took 0.60 of the time and differed from the normal step's picture by 35 dB PSNR (median; 31 at worst),
+# at 4x 0.38 and 30 dB (24 at worst)
 MAX_STRIDE = 4.0
 FIRST_FRAME_RAYS = 4096  # 64 x 64: on the 70-step fox capture, ~1.5 ms a ray on one shared core
 
