@@ -256,7 +256,8 @@ class OccupancyGrid:
 
     def _update_cells(self, step: int) -> list[Tensor]:
         """Per cascade, the cells an update evaluates: all visible ones during warm-up, else 1/4 of them uniformly
-        + as many occupied ones."""
+        + a quarter of all cells' count drawn from the occupied ones (instant-ngp's rule; visibility leaves each
+        occupied cell's refresh rate as it was)."""
         n = self.resolution ** 3
         cells = []
         for c in range(self.cascades):
@@ -269,7 +270,7 @@ class OccupancyGrid:
                     else seen[torch.randint(0, m, (m // 4,), device=self.device)]
                 occ = self.occupied[c].nonzero(as_tuple=True)[0]
                 if occ.numel():
-                    idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (m // 4,), device=self.device)]])
+                    idx = torch.cat([idx, occ[torch.randint(0, occ.numel(), (n // 4,), device=self.device)]])
             cells.append(idx)
         return cells
 
