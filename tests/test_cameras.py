@@ -76,3 +76,21 @@ def test_scaled_cameras_keep_pixel_areas():
     _, d_half, _ = half.rays(torch.zeros(3, dtype=torch.long), u, v)
     _, d_full, _ = cams.rays(torch.zeros(3, dtype=torch.long), 2 * u + 0.5, 2 * v + 0.5)
     assert torch.allclose(d_half, d_full, atol=1e-6)
+
+
+def test_in_image_is_in_front_and_inside_each_views_frame():
+    """Cameras.in_image against plain comparisons: two views of different sizes, points behind, on the edges and
+    just outside; the left/top edges count as inside, the right/bottom ones do not."""
+    cams = Cameras.create(np.stack([look_at((0, 0, 3), (0, 0, 0), up=(0, 1, 0)),
+                                    look_at((3, 0, 0), (0, 0, 0), up=(0, 1, 0))]), 20.0, 20.0, 8.0, 6.0,
+                          [16, 32], [12, 24])
+    views = torch.tensor([0, 1])
+    uv = torch.tensor([[[0.0, 0.0], [15.99, 11.99], [16.0, 5.0], [-0.01, 5.0], [8.0, 12.0]]] * 2)
+    z = torch.tensor([[1.0, 1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0, -1.0]])
+    got = cams.in_image(uv, z, views)
+    assert got.tolist() == [[True, True, False, False, False], [True, True, True, False, False]]
+    pts = torch.randn(200, 3)
+    uv, z = cams.project_views(pts, views)
+    w, h = torch.tensor([[16.0], [32.0]]), torch.tensor([[12.0], [24.0]])
+    plain = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+    assert torch.equal(cams.in_image(uv, z, views), plain)

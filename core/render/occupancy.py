@@ -322,9 +322,8 @@ class OccupancyGrid:
             seen = torch.zeros(x.shape[0], dtype=torch.bool, device=self.device)
             left = torch.arange(x.shape[0], device=self.device)
             for v in range(len(cams)):  # each camera projects only the corners no earlier one saw
-                uv, z = cams.project(x[left], v)
-                hit = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= float(cams.width[v])) & (uv[:, 1] >= 0) \
-                    & (uv[:, 1] <= float(cams.height[v]))
+                view = torch.tensor([v])
+                hit = cams.in_image(*cams.project_views(x[left], view), view)[0]
                 seen[left[hit]] = True
                 left = left[~hit]
                 if left.numel() == 0:

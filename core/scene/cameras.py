@@ -118,6 +118,13 @@ class Cameras:
         v = -self.fy[views, None] * pc[..., 1] / z + self.cy[views, None]
         return torch.stack([u, v], dim=-1), z
 
+    def in_image(self, uv: torch.Tensor, z: torch.Tensor, views: torch.Tensor) -> torch.Tensor:
+        """Whether points that `project_views` put at pixels `uv` (V,P,2) and depths `z` (V,P) in `views` (V,) lie in
+        front of each camera and inside its image [0, W) x [0, H): (V,P) bool."""
+        views = views.to(self.c2w.device).long()
+        w, h = self.width[views, None].to(uv), self.height[views, None].to(uv)
+        return (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
+
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """OpenGL camera-to-world pose at `eye` looking at `target` (4x4 float64)."""

@@ -421,9 +421,9 @@ def anchor_views(points: np.ndarray, cameras, limit: int = VOTE_VIEWS) -> list[i
         return []
     cams = cameras.to("cpu")
     uv, z = cams.project_views(torch.from_numpy(pts), torch.arange(n))
-    uv, z = uv.double().numpy(), z.double().numpy()
+    inside = cams.in_image(uv, z, torch.arange(n)).numpy()
+    uv = uv.double().numpy()
     w, h = cams.width.double().numpy()[:, None], cams.height.double().numpy()[:, None]
-    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < w) & (uv[..., 1] >= 0) & (uv[..., 1] < h)
     share = inside.mean(1)
     count = np.maximum(inside.sum(1), 1)
     cu = np.where(inside, uv[..., 0] / w, 0.0).sum(1) / count  # the points' centre in image fractions
