@@ -265,6 +265,9 @@ def test_visibility_survives_a_checkpoint_and_older_states_keep_the_grids_own():
     mine.restrict_to_views(_arc_cameras())
     mine.load_state_dict(older)
     assert torch.equal(mine.occupied, grid.visible)  # the state's cells, less those this grid never sees
+    damaged = {**grid.state_dict(), "visible": torch.ones(1, 8 ** 3, dtype=torch.bool)}
+    with pytest.raises(UserError, match="'visible' has shape"):
+        OccupancyGrid(resolution=16, device="cpu").load_state_dict(damaged)
 
 
 def test_a_longer_step_marches_proportionally_fewer_samples_for_a_close_picture():

@@ -413,7 +413,9 @@ class OccupancyGrid:
 
     def load_state_dict(self, state: dict[str, Tensor]) -> None:
         """Restore from `state_dict()`; the grid's resolution and cascades must match."""
-        for key in ("density", "occupied"):
+        for key in ("density", "occupied", "visible"):
+            if key == "visible" and key not in state:
+                continue  # older checkpoints have none: the visibility this grid has stays
             if key not in state:
                 raise UserError(f"occupancy grid state has no '{key}' tensor",
                                 hint="the checkpoint is incomplete or of another format; retrain or re-save it")
@@ -423,9 +425,8 @@ class OccupancyGrid:
                                 hint="create the grid with the checkpoint's resolution and cascades")
         self.density = state["density"].to(self.device, torch.float32).clone()
         self.occupied = state["occupied"].to(self.device).bool().clone()
-        seen = state.get("visible")  # older checkpoints have none: the visibility this grid has stays
-        self._set_visible(seen.to(self.device).bool().clone() if seen is not None
-                          and tuple(seen.shape) == tuple(self.visible.shape) else self.visible)
+        seen = state.get("visible")
+        self._set_visible(seen.to(self.device).bool().clone() if seen is not None else self.visible)
         md = state.get("mean_density")
         self.mean_density = float(md.reshape(-1)[0]) if md is not None else float(self.density[0].mean())
         self._version += 1
