@@ -196,6 +196,28 @@ def test_depth_edges_mark_the_far_side_of_a_step_and_not_a_grazing_plane():
     assert e[19, 25] and e[40, 25] and e[30, 19] and e[30, 44]
 
 
+def test_depth_edges_within_a_patch_are_the_full_maps_edges_there():
+    """The patch's anchors read depth edges on the patch's box only: equal to the whole map's there, patches at
+    the image's borders and corners included (where a wrapped-around neighbour must not make an edge)."""
+    from repaint_nerf.core.select.geometry import depth_edges_within
+
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    depth = np.exp(rng.normal(0.0, 0.08, (h, w))) * 2.0
+    depth[10:30, 20:40] *= 0.8  # a box standing nearer: real edges
+    depth[0, :] *= 0.5  # the top row far nearer than the bottom one: a wrap-around would see a step there
+    opacity = (rng.random((h, w)) > 0.05).astype(np.float32)
+    full = depth_edges(depth, opacity)
+    assert full.any() and not full.all()
+    for y0, y1, x0, x1 in ((0, 6, 0, 9), (40, 48, 55, 64), (8, 32, 18, 42), (0, 48, 30, 31), (20, 21, 0, 64)):
+        where = np.zeros((h, w), bool)
+        where[y0:y1, x0:x1] = True
+        where &= rng.random((h, w)) > 0.3  # scattered, as the patch's pixels on the object are
+        got = depth_edges_within(where, depth, opacity)
+        np.testing.assert_array_equal(got, full & where)
+    assert not depth_edges_within(np.zeros((h, w), bool), depth, opacity).any()
+
+
 def test_rough_depth_turns_the_2d_geometry_off_and_clean_depth_keeps_it():
     from repaint_nerf.core.select.geometry import DEPTH_EDGE, FULL_PARTS, depth_noise, fit_parts
 

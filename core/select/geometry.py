@@ -86,6 +86,18 @@ def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float
     return edge | ~surface
 
 
+def depth_edges_within(where: np.ndarray, depth: np.ndarray, opacity: np.ndarray | None = None) -> np.ndarray:
+    """`depth_edges` on the pixels `where` (bool (H, W)), False elsewhere: evaluated on their bounding box and a
+    1-px margin, since an edge pixel depends on its 4 neighbours only (a patch's anchors need a fraction of a
+    full-resolution view: 12 ms of a 32-ms patch on the fox capture's 781-px view)."""
+    out = np.zeros(np.shape(depth), bool)
+    ys, xs = np.nonzero(where)
+    if len(ys):
+        box = (slice(max(ys.min() - 1, 0), ys.max() + 2), slice(max(xs.min() - 1, 0), xs.max() + 2))
+        out[box] = depth_edges(np.asarray(depth)[box], None if opacity is None else np.asarray(opacity)[box])
+    return out & where
+
+
 def camera_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """Camera-space points (H, W, 3) (x right, y down, z forward) of a z-depth map; pixel centres at +0.5."""
     z = np.asarray(depth, np.float64)
@@ -401,7 +413,7 @@ def patch_anchors(patch_px: np.ndarray, similarity: np.ndarray, depth: np.ndarra
     depth = np.asarray(depth, np.float32)
     opacity = np.asarray(opacity, np.float32)
     on = np.asarray(patch_px, bool) & (np.asarray(similarity) > threshold) & (opacity > MIN_OPACITY)
-    on &= ~depth_edges(depth, opacity)
+    on &= ~depth_edges_within(on, depth, opacity)
     pts = surface_points(_interior(on), depth, cameras, 0)
     if len(pts) > MAX_ANCHORS:
         pts = pts[np.random.default_rng(rng_seed).choice(len(pts), MAX_ANCHORS, replace=False)]
