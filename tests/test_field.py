@@ -195,3 +195,37 @@ def test_renders_through_directions_per_ray_match_per_point(monkeypatch):
         if ga is not None:
             torch.testing.assert_close(ga, gb, atol=1e-4, rtol=1e-3)
     assert float(results[0][0].std()) > 0.02
+
+
+@pytest.mark.parametrize("head", ["separate", "trunk"])
+def test_first_surface_features_evaluated_on_their_rows_only_are_the_full_heads(monkeypatch, head):
+    """With features composited at the first surface, the renderer runs the feature head only on the samples the
+    composite reads (`first_surface_samples`): the same images, bit for bit, from fewer feature rows."""
+    from repaint_nerf.core.render.renderer import RenderOptions, render_rays
+
+    field = _field(feature_dim=6, feature_head=head, appearance_dim=4, appearance_count=2)
+    with torch.no_grad():
+        field.grid.table.normal_(0.0, 1.0)
+        if field.feature_grid is not None:
+            field.feature_grid.table.normal_(0.0, 1.0)
+        field.trunk_out.bias[0] = 1.0  # dense enough that rays stop inside the cube
+    g = torch.Generator().manual_seed(2)
+    o = torch.tensor([0.0, 0.0, -2.5]).expand(200, 3)
+    d = torch.nn.functional.normalize(torch.randn(200, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 1.0]), dim=-1)
+    rows = []
+    field.feature_net[0].register_forward_hook(lambda m, i, out: rows.append(i[0].shape[0]))
+    results = []
+    for sparse in (True, False):
+        monkeypatch.setattr(NGPField, "sparse_features", sparse)
+        rows.clear()
+        with torch.no_grad():
+            out = render_rays(field, None, o, d, RenderOptions(outputs=("rgb", "feature", "depth", "opacity"),
+                                                               max_samples=128,
+                                                               feature_first_surface=True, chunk=4096,
+                                                               appearance=torch.zeros(200, dtype=torch.long)))
+        results.append((out, sum(rows)))
+    (sparse_out, sparse_rows), (full_out, full_rows) = results
+    for k in ("rgb", "feature", "depth", "opacity"):
+        assert torch.equal(sparse_out[k], full_out[k]), k
+    assert float(full_out["opacity"].mean()) > 0.5 and float(full_out["feature"].abs().mean()) > 0.01
+    assert 0 < sparse_rows < 0.8 * full_rows  # samples behind the first surface and of no weight were skipped

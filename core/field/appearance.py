@@ -60,10 +60,10 @@ class RayAppearance:
         """The field seen through rays `rays` of this one only (the renderer's rays with samples in a round)."""
         return RayAppearance(self.field, self.image_of_ray[rays])
 
-    def __call__(self, x: Tensor, d: Tensor, outputs=("rgb",), ray: Tensor | None = None) -> dict[str, Tensor]:
+    def __call__(self, x: Tensor, d: Tensor, outputs=("rgb",), ray: Tensor | None = None, **kw) -> dict[str, Tensor]:
         if getattr(self.field, "view_per_ray", False):  # d is per ray, as the codes are
-            return self.field(x, d, outputs=outputs, appearance=self.image_of_ray, ray=ray)
-        return self.field(x, d, outputs=outputs, appearance=None if ray is None else self.image_of_ray[ray])
+            return self.field(x, d, outputs=outputs, appearance=self.image_of_ray, ray=ray, **kw)
+        return self.field(x, d, outputs=outputs, appearance=None if ray is None else self.image_of_ray[ray], **kw)
 
 
 def with_ray_appearance(field, image_of_ray: Tensor | None, start: int, count: int):

@@ -7,6 +7,7 @@ like colour, paper Eq. F(r)) in one of two designs, chosen by `FieldConfig.featu
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 
 import torch
@@ -94,6 +95,7 @@ class NGPField(nn.Module):
     """Instant-NGP style field over the cube [-bound, bound]^3: sigma, view-dependent rgb, optional features."""
 
     view_per_ray = True  # forward takes directions per ray with each point's `ray` (the renderer's fast call)
+    sparse_features = True  # forward takes `feature_rows`: the feature head reads neither view nor image code
 
     def __init__(self, cfg: FieldConfig):
         super().__init__()
@@ -143,11 +145,13 @@ class NGPField(nn.Module):
         return self.act(pre) * self.inside(x).to(pre.dtype)
 
     def forward(self, x: Tensor, d: Tensor | None = None, outputs=("rgb",),
-                appearance: Tensor | None = None, ray: Tensor | None = None) -> dict[str, Tensor]:
+                appearance: Tensor | None = None, ray: Tensor | None = None,
+                feature_rows: Callable[[Tensor], Tensor] | None = None) -> dict[str, Tensor]:
         """Evaluate at points x (N, 3) seen along directions d (N, 3): 'sigma' always, 'rgb'/'feature' when asked.
         `appearance` (N,) picks each point's image code (fields with codes; None: the mean code).
         With `ray` (N,) long, d (R, 3) and appearance (R,) are per ray and point i lies on ray[i]: what depends
-        on the view alone is then computed once per ray, not once per point (a renderer's R is ~30x smaller)."""
+        on the view alone is then computed once per ray, not once per point (a renderer's R is ~30x smaller).
+        `feature_rows(sigma)` (long indices) picks the points whose 'feature' is evaluated; the others' are 0."""
         from repaint_nerf.core.errors import UserError
 
         unknown = set(outputs) - set(OUTPUTS)
@@ -165,8 +169,13 @@ class NGPField(nn.Module):
         if "feature" in outputs:
             if self.feature_net is None:
                 raise UserError("this field has no feature head", hint="set feature_dim > 0 in the field config")
-            src = self.feature_grid(x) if self.feature_grid is not None else h
-            result["feature"] = self.feature_net(src)
+            if feature_rows is None:
+                result["feature"] = self.feature_net(self.feature_grid(x) if self.feature_grid is not None else h)
+            else:
+                rows = feature_rows(result["sigma"])
+                src = self.feature_grid(x[rows]) if self.feature_grid is not None else h.index_select(0, rows)
+                picked = self.feature_net(src)
+                result["feature"] = picked.new_zeros((x.shape[0], picked.shape[-1])).index_copy_(0, rows, picked)
         return result
 
     def _color_input(self, out_t: Tensor, d: Tensor, appearance: Tensor | None, ray: Tensor | None) -> Tensor:

@@ -73,6 +73,22 @@ FIRST_SURFACE_T = 0.5  # a sample belongs to the ray's first surface while the t
 # at least this (the median depth's crossing, `median_crossing`, is the last such sample)
 
 
+def _weights(sigma: Tensor, t_start: Tensor, t_end: Tensor, ray: Tensor,
+             tau_before: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """(tau, transmittance in front, weight) per sample."""
+    tau = optical_depth(sigma, t_start, t_end)
+    trans = transmittance(tau, ray, tau_before)
+    return tau, trans, trans * -torch.expm1(-tau)
+
+
+def first_surface_samples(sigma: Tensor, t_start: Tensor, t_end: Tensor, ray: Tensor,
+                          tau_before: Tensor | None = None) -> Tensor:
+    """(N,) bool: the samples whose values `composite` sums for its `first_surface` entries (a weight that is not
+    0, in front of the transmittance's fall through FIRST_SURFACE_T); the others may hold any finite value."""
+    _, trans, w = _weights(sigma, t_start, t_end, ray, tau_before)
+    return (w != 0) & (trans >= FIRST_SURFACE_T)
+
+
 def composite(sigma: Tensor, t_start: Tensor, t_end: Tensor, t: Tensor, ray: Tensor, n_rays: int,
               values: dict[str, Tensor] | None = None, tau_before: Tensor | None = None,
               median: bool = False, first_surface: tuple[str, ...] = ()) -> dict[str, Tensor]:
@@ -83,10 +99,7 @@ def composite(sigma: Tensor, t_start: Tensor, t_end: Tensor, t: Tensor, ray: Ten
     `first_surface` sum only the samples up to the one where T falls through `FIRST_SURFACE_T` (the first
     surface, at the median depth): what lies behind a nearer object that is only partly opaque on the ray (its
     silhouette, a thin or soft surface) is not mixed into it."""
-    tau = optical_depth(sigma, t_start, t_end)
-    alpha = -torch.expm1(-tau)
-    trans = transmittance(tau, ray, tau_before)
-    w = trans * alpha
+    tau, trans, w = _weights(sigma, t_start, t_end, ray, tau_before)
     out = {"weights": w, "opacity": segment_sum(w, ray, n_rays), "depth_sum": segment_sum(w * t, ray, n_rays)}
     if median:
         out["median_sum"] = segment_sum(median_crossing(tau, trans, t_start, t_end), ray, n_rays)

@@ -20,8 +20,8 @@ from repaint_nerf.core.device import synchronize
 from repaint_nerf.core.errors import UserError
 from repaint_nerf.core.field.appearance import RayAppearance, with_ray_appearance
 from repaint_nerf.core.render import march_native
-from repaint_nerf.core.render.composite import (apply_background, composite, distortion, optical_depth, segment_sum,
-                                                transmittance)
+from repaint_nerf.core.render.composite import (apply_background, composite, distortion, first_surface_samples,
+                                                optical_depth, segment_sum, transmittance)
 from repaint_nerf.core.render.box import cube
 from repaint_nerf.core.render.occupancy import OccupancyGrid, default_step
 from repaint_nerf.core.render.raymarch import RayPlan, Samples, cat_samples, expand_segments, next_segments, plan_rays
@@ -136,22 +136,35 @@ def _device_of(field, grid, origins) -> torch.device:
     return grid.device if grid is not None else origins.device
 
 
-def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple) -> tuple[Tensor, dict]:
-    """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked."""
+def _evaluate(field, s: Samples, dirs: Tensor, heads: tuple, feature_rows=None) -> tuple[Tensor, dict]:
+    """Field at the samples: sigma (N,) and the asked heads; density only when no head is asked. `feature_rows`
+    (`_front_rows`) limits the feature head to the rows it picks."""
     if not heads:
         return field.density(s.x).reshape(-1), {}
+    kw = {} if feature_rows is None else {"feature_rows": feature_rows}
     if getattr(field, "view_per_ray", False):  # the view-dependent part once per ray with samples here
         rays, local = torch.unique_consecutive(s.ray, return_inverse=True)  # packed: sorted by ray
         fld = field.rows(rays) if isinstance(field, RayAppearance) else field
-        out = fld(s.x, dirs[rays], outputs=heads, ray=local)
+        out = fld(s.x, dirs[rays], outputs=heads, ray=local, **kw)
     else:
-        out = field(s.x, dirs[s.ray], outputs=heads, **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
+        out = field(s.x, dirs[s.ray], outputs=heads, **kw,
+                    **({"ray": s.ray} if getattr(field, "per_ray", False) else {}))
     return out["sigma"].reshape(-1), {h: out[h] for h in heads}
 
 
 def _first_surface(opts: RenderOptions) -> tuple[str, ...]:
     """The heads composited at the first surface only (RenderOptions.feature_first_surface)."""
     return ("feature",) if opts.feature_first_surface else ()
+
+
+def _front_rows(field, s: Samples, heads: tuple, opts: RenderOptions, carry: Tensor):
+    """For a field that evaluates its feature head on chosen rows only (`sparse_features`), when features are
+    composited at the first surface: the rows `composite` reads them on (`first_surface_samples`), as a function of
+    the round's sigma; None otherwise. Samples behind the first surface or of no weight then cost no feature head
+    (a fox feature frame: the head on about a third of its samples)."""
+    if "feature" not in heads or "feature" not in _first_surface(opts) or not getattr(field, "sparse_features", False):
+        return None
+    return lambda sigma: first_surface_samples(sigma, s.t_start, s.t_end, s.ray, carry).nonzero(as_tuple=True)[0]
 
 
 def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPlan, heads: tuple,
@@ -209,7 +222,7 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
                 carry = carry + segment_sum(tau.double(), s.ray, n)
         else:
             with _Timer(acc, "field", prof, dev):
-                sigma, vals = _evaluate(field, s, d, heads)
+                sigma, vals = _evaluate(field, s, d, heads, _front_rows(field, s, heads, opts, carry))
             acc.stats["samples"] += len(s)
             with _Timer(acc, "compositing", prof, dev):
                 out = composite(sigma, s.t_start, s.t_end, s.t, s.ray, n, vals, tau_before=carry,
