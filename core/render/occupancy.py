@@ -285,9 +285,7 @@ class OccupancyGrid:
     def _apply(self, fresh: Tensor) -> None:
         self._seeded = True
         self.density = torch.maximum(self.density * self.decay, fresh)
-        # over every cell, the unseen ones at 0 (instant-ngp's mean): a mean over the seen cells alone held the
-        # fox's threshold at its cap through the first minute and culled content the base's kept (0.3 dB at 120 s)
-        self.mean_density = float(self.density[0].mean())
+        self.mean_density = self._visible_mean()
         self.occupied = self.density > self.threshold()
         if self._reopen is not None:  # open for one period; their density is untouched, so the next
             self.occupied |= self._reopen  # update prunes them again unless the field has filled them
@@ -295,6 +293,12 @@ class OccupancyGrid:
         if self._visible_idx is not None:
             self.occupied &= self.visible
         self._version += 1
+
+    def _visible_mean(self) -> float:
+        """Mean density of cascade 0's visible cells: the unseen ones hold no content, so they do not lower the
+        threshold."""
+        d = self.density[0]
+        return float(d.mean() if self._visible_idx is None else d[self._visible_idx[0]].mean())
 
     @torch.no_grad()
     def restrict_to_views(self, cameras) -> float:
