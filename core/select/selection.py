@@ -60,7 +60,7 @@ class Selection:
     def add_anchors(self, points) -> None:
         """Keep the field-space surface points (N, 3) of a positive patch drawn outside the training views
         (core.select.geometry.patch_anchors): they seed the training views' masks as a training-view patch does."""
-        self.anchors.extend([round(float(x), 5) for x in p] for p in np.asarray(points, np.float32).reshape(-1, 3))
+        self.anchors.extend(np.round(np.asarray(points, np.float64).reshape(-1, 3), 5).tolist())
 
     def anchor_patch(self, similarity: np.ndarray, patch, depth: np.ndarray, opacity: np.ndarray, camera,
                      edge_depth: np.ndarray | None = None) -> float:
