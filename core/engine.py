@@ -206,8 +206,7 @@ class Engine:
 
     def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict | None:
         """Advance the active job (the repaint edit if one runs, else stage 1) for about `seconds`, at least one
-        step, ending early between steps once `stop()` turns true (stage 1: also within a step, before its
-        backward pass). None when there is nothing to train or stage 1 was stopped before its first step."""
+        step, ending early between steps once `stop()` turns true."""
         if not self.can_train():
             return None
         if self.edit is not None:
@@ -223,8 +222,6 @@ class Engine:
                 self._feature_cache = None
         else:
             info = dict(self.trainer.train_for(seconds, stop))
-            if "step" not in info:
-                return None  # interrupted before its first step
             info["phase"] = "reconstruct"
         self.last_info = info
         return info

@@ -76,10 +76,7 @@ def test_training_yields_between_steps_when_asked(engine):
     start = engine.trainer.step_count
     info = engine.train_for(60.0, stop=lambda: engine.trainer.step_count >= start + 3)
     assert engine.trainer.step_count == start + 3 and info["phase"] == "reconstruct"  # not 60 s of steps
-    assert engine.train_for(60.0, stop=lambda: engine.trainer.step_count >= start + 4)["step"] \
-        == start + 4  # at least one step
-    assert engine.train_for(60.0, stop=lambda: True) is None  # unless stopped before it: the user acted
-    assert engine.trainer.step_count == start + 4
+    assert engine.train_for(60.0, stop=lambda: True)["step"] == start + 4  # at least one step
 
 
 def test_worker_yields_training_to_views_commands_and_gestures(engine):

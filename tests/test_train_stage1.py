@@ -205,30 +205,6 @@ def test_seeded_and_reproducible(tiny_scene, standin_field):
     assert runs[0] == runs[1]
 
 
-def test_a_step_stopped_before_its_backward_pass_is_dropped(tiny_scene, standin_field):
-    """The editor's next action interrupts a training step before its backward pass (`step(stop)`): the step is
-    dropped, nothing is learned from it, and the next step is the one an uninterrupted run would take next."""
-    from repaint_nerf.core.train.stage1 import Stage1Trainer
-
-    _, scene = tiny_scene
-    tr = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
-    tr.step()
-    params = [p.detach().clone() for p in tr.field.parameters()]
-    forward_done = []
-    tr.field.register_forward_hook(lambda *a: forward_done.append(True))  # the samples' differentiable pass
-    for stop in (lambda: True, lambda: bool(forward_done)):  # while marching; after the forward pass
-        forward_done.clear()
-        assert tr.step(stop) is None
-        assert tr.step_count == 1 and tr.history.steps == [1.0]
-        assert all(torch.equal(a, b) for a, b in zip(params, tr.field.parameters()))
-    assert forward_done  # the second stop came after the forward pass, not before it
-    info = tr.step(lambda: False)
-    assert info is not None and tr.step_count == 2
-    assert not all(torch.equal(a, b) for a, b in zip(params, tr.field.parameters()))
-    done = tr.train_for(10.0, stop=lambda: True)  # stopped before its first step: no step at all
-    assert "step" not in done and tr.step_count == 2
-
-
 def test_random_background_targets(tiny_scene, standin_field):
     from repaint_nerf.core.train.stage1 import Stage1Trainer
 
@@ -256,9 +232,9 @@ class _Spy:
     def __init__(self, fn):
         self.fn, self.outputs = fn, []
 
-    def __call__(self, field, grid, origins, dirs, opts, cancel=None):
+    def __call__(self, field, grid, origins, dirs, opts):
         self.outputs.append(tuple(opts.outputs))
-        return self.fn(field, grid, origins, dirs, opts, cancel)
+        return self.fn(field, grid, origins, dirs, opts)
 
 
 def test_feature_and_depth_are_free_when_off(tiny_scene, field_impl, monkeypatch):

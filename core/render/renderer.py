@@ -245,8 +245,6 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         return None
     totals, kept = marched
     if strategy == "filter" or not totals:
-        if cancel is not None and cancel():
-            return None
         with _Timer(acc, "sampling", prof, dev):
             s = cat_samples(kept, dev)
         with _Timer(acc, "field", prof, dev):
@@ -342,13 +340,12 @@ def _render(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor, op
 
 
 def render_rays(field, grid: OccupancyGrid | None, origins: Tensor, dirs: Tensor,
-                opts: RenderOptions | None = None, cancel: Callable[[], bool] | None = None) -> dict | None:
+                opts: RenderOptions | None = None) -> dict:
     """Render unit-direction rays (R,3) in field space: the asked outputs ('rgb' (R,3), 'depth' (R,) along
     the ray, 'median_depth' (R,) where T falls through 0.5, 'opacity' (R,), 'feature' (R,F), 'distortion' (R,):
     core.render.composite.distortion in steps over max_samples) plus 'stats'.
-    Differentiable; grid=None disables skipping. None when `cancel()` turns true (it is asked between marching
-    rounds and before the samples' final evaluation)."""
-    return _render(field, grid, origins, dirs, opts or RenderOptions(), cancel)
+    Differentiable; grid=None disables skipping."""
+    return _render(field, grid, origins, dirs, opts or RenderOptions(), None)
 
 
 @torch.no_grad()

@@ -527,11 +527,8 @@ class Stage1Trainer:
             g["lr"] = base * f
         return self.cfg.lr * f
 
-    def step(self, stop: Callable[[], bool] | None = None) -> dict[str, Any] | None:
+    def step(self) -> dict[str, Any]:
         """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took.
-        A step that `stop()` interrupts before its backward pass is dropped (None; nothing changes but the grid's
-        scheduled update): the editor's worker passes the user's next action, which then waits for the rest of
-        a forward pass, not of a whole step.
 
         With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device). While a
         feature stream's teacher runs on the CPU, the step leaves it its threads: both pools on the same cores
@@ -539,11 +536,11 @@ class Stage1Trainer:
         """
         stream = self.feature_stream
         if stream is None or self.device.type != "cpu":
-            return self._step(stop)
+            return self._step()
         with threads(torch.get_num_threads() - stream.threads):
-            return self._step(stop)
+            return self._step()
 
-    def _step(self, stop: Callable[[], bool] | None = None) -> dict[str, Any] | None:
+    def _step(self) -> dict[str, Any]:
         prof = self.profile
         times: dict[str, float] = {}
         t0 = tick = time.perf_counter()
@@ -573,9 +570,7 @@ class Stage1Trainer:
         opts = RenderOptions(outputs=outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
                              one_pass=one_pass, appearance=batch["image"])
-        out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts, cancel=stop)
-        if out is None:
-            return None  # interrupted while marching
+        out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
         stats = out.get("stats") or {}
         if not one_pass and stats.get("density_samples"):
             self.filter_kept = stats["samples"] / stats["density_samples"]
@@ -599,8 +594,6 @@ class Stage1Trainer:
         if self.cfg.reopen_error > 0 and self.cfg.reopen_fraction > 0 and self.step_count % every == every - 1:
             self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
-        if stop is not None and stop():
-            return None  # interrupted before the backward pass, which takes ~40% of a step
         self.optimizer.zero_grad(set_to_none=True)
         finite = bool(torch.isfinite(total))
         if finite:
@@ -669,10 +662,7 @@ class Stage1Trainer:
                 break
             if should_stop():
                 break
-            done = self.step(should_stop)
-            if done is None:
-                break
-            info = done
+            info = self.step()
             if callback is not None:
                 callback(info)
             every = self.cfg.checkpoint_every_s
@@ -692,10 +682,9 @@ class Stage1Trainer:
                 or (self.budget_seconds is not None and self.train_seconds >= self.budget_seconds))
 
     def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict:
-        """Train for about `seconds` more (at least one step, unless `stop()` turns true first), ending early once
-        `stop()` turns true, within a step before its backward pass; the editor's worker calls this between renders
-        and stops it when the user moves the camera or acts."""
-        info = self.train(steps=self.step_count + 1, stop=stop) or {}
+        """Train for about `seconds` more (at least one step), ending early once `stop()` turns true; the
+        editor's worker calls this between renders and stops it when the user moves the camera."""
+        info = self.train(steps=self.step_count + 1) or {}
         if seconds > info.get("seconds", 0.0) and not (stop is not None and stop()):
             info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0), stop=stop) or info
         if self.feature_stream is not None:  # the editor says how far the teacher has got
