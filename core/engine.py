@@ -204,9 +204,11 @@ class Engine:
             return not self.edit.done
         return not self.stage1_frozen and not getattr(self.trainer, "done", False)
 
-    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict | None:
+    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None,
+                  interlude: Callable[[], None] | None = None) -> dict | None:
         """Advance the active job (the repaint edit if one runs, else stage 1) for about `seconds`, at least one
-        step, ending early between steps once `stop()` turns true."""
+        step, ending early between steps once `stop()` turns true; stage 1 runs `interlude()` within each step, between
+        its forward and backward pass (the worker renders a new view there)."""
         if not self.can_train():
             return None
         if self.edit is not None:
@@ -221,7 +223,7 @@ class Engine:
                     info["version"] = ver.id
                 self._feature_cache = None
         else:
-            info = dict(self.trainer.train_for(seconds, stop))
+            info = dict(self.trainer.train_for(seconds, stop, interlude))
             info["phase"] = "reconstruct"
         self.last_info = info
         return info

@@ -58,7 +58,7 @@ class AnalyticEngine:
     def can_train(self):
         return True
 
-    def train_for(self, seconds, stop=None):
+    def train_for(self, seconds, stop=None, interlude=None):
         time.sleep(min(seconds, 0.02))
         self.step += 1
         info = {"step": self.step, "loss": 1.0 / self.step, "psnr": 10 + np.log(self.step)}

@@ -108,7 +108,7 @@ class ThreadEngine(SlowEngine):
     def can_train(self) -> bool:
         return True
 
-    def train_for(self, seconds, stop=None):
+    def train_for(self, seconds, stop=None, interlude=None):
         import torch
 
         self.train_threads.append(torch.get_num_threads())
@@ -289,3 +289,55 @@ def test_a_moving_view_at_the_floor_marches_the_controllers_stride_and_its_refin
     assert first[:2] == (worker.controller.min_scale, 3.0)
     assert refined and all(stride == 1.0 for _, stride, _ in refined) and refined[-1][0] == 1.0
     assert [stride for _, stride, out in engine.strides if "feature" in out][0] == 1.0
+
+
+class SteppingEngine(SlowEngine):
+    """Training steps of a 150-ms forward and a 150-ms backward pass, with the trainer's interlude between them."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.events: list[str] = []
+
+    def render(self, cameras, scale=1.0, outputs=("rgb",), cancel=None, stride=1.0):
+        self.events.append(f"render {cameras}")
+        return {"rgb": np.zeros((2, 2, 3), np.float32)}
+
+    def can_train(self) -> bool:
+        return True
+
+    def note(self, what: str) -> str:
+        self.events.append(what)
+        return what
+
+    def train_for(self, seconds, stop=None, interlude=None):
+        self.events.append("forward")
+        time.sleep(0.15)
+        if interlude is not None:
+            interlude()
+        self.events.append("backward")
+        time.sleep(0.15)
+        self.events.append("end")
+        return {"step": self.events.count("end")}
+
+
+def test_a_new_view_renders_within_a_training_step_and_a_command_after_it():
+    """A view requested during a step's forward pass is rendered before its backward pass (the trainer's
+    interlude), not after the step; a command waits for the step's end (it may replace what the step trains)."""
+    engine = SteppingEngine()
+    worker = Worker(engine, rest_s=10.0).start()
+    try:
+        t0 = time.perf_counter()
+        while engine.events[-1:] != ["forward"] and time.perf_counter() - t0 < 5:
+            time.sleep(0.002)
+        worker.request_render("a", key=("a",))
+        worker.call(engine.note, "command")
+        frames = _frames(worker, lambda fs: len(fs) >= 1)
+        t0 = time.perf_counter()
+        while "command" not in engine.events and time.perf_counter() - t0 < 5:
+            time.sleep(0.005)
+    finally:
+        worker.stop()
+    assert frames and frames[0].key == ("a",)
+    i = engine.events.index("render a")
+    assert engine.events[i - 1] == "forward" and engine.events[i + 1] == "backward", engine.events
+    assert engine.events[engine.events.index("command") - 1] == "end", engine.events

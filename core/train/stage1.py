@@ -527,8 +527,11 @@ class Stage1Trainer:
             g["lr"] = base * f
         return self.cfg.lr * f
 
-    def step(self) -> dict[str, Any]:
+    def step(self, interlude: Callable[[], None] | None = None) -> dict[str, Any]:
         """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took.
+        `interlude()`, when given, runs between the forward and the backward pass (the editor's worker serves a new
+        view there, so a camera move or a tool switch waits for a forward pass, not for a whole step); its time is
+        not the step's.
 
         With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device). While a
         feature stream's teacher runs on the CPU, the step leaves it its threads: both pools on the same cores
@@ -536,11 +539,11 @@ class Stage1Trainer:
         """
         stream = self.feature_stream
         if stream is None or self.device.type != "cpu":
-            return self._step()
+            return self._step(interlude)
         with threads(torch.get_num_threads() - stream.threads):
-            return self._step()
+            return self._step(interlude)
 
-    def _step(self) -> dict[str, Any]:
+    def _step(self, interlude: Callable[[], None] | None = None) -> dict[str, Any]:
         prof = self.profile
         times: dict[str, float] = {}
         t0 = tick = time.perf_counter()
@@ -594,6 +597,12 @@ class Stage1Trainer:
         if self.cfg.reopen_error > 0 and self.cfg.reopen_fraction > 0 and self.step_count % every == every - 1:
             self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
+        if interlude is not None:
+            paused = time.perf_counter()
+            interlude()
+            resumed = time.perf_counter()
+            t0 += resumed - paused
+            tick += resumed - paused
         self.optimizer.zero_grad(set_to_none=True)
         finite = bool(torch.isfinite(total))
         if finite:
@@ -645,11 +654,13 @@ class Stage1Trainer:
             self.grid.reopen(batch["origins"][idx], batch["dirs"][idx], t_end)
 
     def train(self, steps: int | None = None, seconds: float | None = None,
-              callback: Callable[[dict], Any] | None = None, stop=None) -> dict | None:
+              callback: Callable[[dict], Any] | None = None, stop=None,
+              interlude: Callable[[], None] | None = None) -> dict | None:
         """Train until the total step count reaches `steps` or the total training time reaches `seconds`
         (both counted from the first step, so a resumed run finishes its plan), or until `stop` is set.
 
-        `stop` is a threading.Event or a callable returning True; `callback(info)` runs after every step.
+        `stop` is a threading.Event or a callable returning True; `callback(info)` runs after every step; `interlude`
+        runs within each (`step`).
         The LR schedule spans the budget set by `plan` (else `horizon_steps`). Returns the last step's info.
         """
         should_stop = stop.is_set if isinstance(stop, threading.Event) else (stop or (lambda: False))
@@ -662,7 +673,7 @@ class Stage1Trainer:
                 break
             if should_stop():
                 break
-            info = self.step()
+            info = self.step(interlude)
             if callback is not None:
                 callback(info)
             every = self.cfg.checkpoint_every_s
@@ -681,12 +692,15 @@ class Stage1Trainer:
         return ((self.budget_steps is not None and self.step_count >= self.budget_steps)
                 or (self.budget_seconds is not None and self.train_seconds >= self.budget_seconds))
 
-    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict:
+    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None,
+                  interlude: Callable[[], None] | None = None) -> dict:
         """Train for about `seconds` more (at least one step), ending early once `stop()` turns true; the
-        editor's worker calls this between renders and stops it when the user moves the camera."""
-        info = self.train(steps=self.step_count + 1) or {}
+        editor's worker calls this between renders and stops it when the user moves the camera, and serves a
+        new view within a step through `interlude` (`step`)."""
+        info = self.train(steps=self.step_count + 1, interlude=interlude) or {}
         if seconds > info.get("seconds", 0.0) and not (stop is not None and stop()):
-            info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0), stop=stop) or info
+            info = self.train(seconds=self.train_seconds + seconds - info.get("seconds", 0.0), stop=stop,
+                              interlude=interlude) or info
         if self.feature_stream is not None:  # the editor says how far the teacher has got
             info = {**info, "features_ready": [self.feature_stream.received, len(self.feature_stream)]}
         return info
