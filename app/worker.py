@@ -353,10 +353,10 @@ class Worker:
                         or (self._latest is not None and self._latest.serial != serial))
 
     def _interlude(self) -> None:
-        """Within a training step, between its forward and backward pass: render the first frame of a view
-        requested since the step began (a camera move, a tool switch's feature frame), so it waits for at most a
-        forward pass, not a whole step (fox: 55 + 35 ms). Refinements and commands wait for the step's end:
-        a command may replace the model the step trains."""
+        """Within a training step, before its backward pass: render the first frame of a view requested since the
+        step began (a camera move, a tool switch's feature frame), so it waits for at most a forward pass, not a
+        whole step (fox: 55 + 35 ms; an edit's step: its render and guidance, not its backward pass too).
+        Refinements and commands wait for the step's end: a command may replace the model the step trains."""
         with self._lock:
             req = self._latest
             fresh = req is not None and self._served[0] != req.serial

@@ -207,12 +207,12 @@ class Engine:
     def train_for(self, seconds: float, stop: Callable[[], bool] | None = None,
                   interlude: Callable[[], None] | None = None) -> dict | None:
         """Advance the active job (the repaint edit if one runs, else stage 1) for about `seconds`, at least one
-        step, ending early between steps once `stop()` turns true; stage 1 runs `interlude()` within each step, between
-        its forward and backward pass (the worker renders a new view there)."""
+        step, ending early between steps once `stop()` turns true; each step runs `interlude()` before its backward
+        pass (the worker renders a new view there)."""
         if not self.can_train():
             return None
         if self.edit is not None:
-            info = dict(self.edit.train_for(seconds, stop))
+            info = dict(self.edit.train_for(seconds, stop, interlude))
             info["phase"] = "repaint"
             info["steps"] = int(self.edit.cfg.steps)
             if self.edit.done:

@@ -272,9 +272,10 @@ class RepaintTrainer:
         mse = masked_mse(rgb, target, self.keep[view][None, None])
         return None if mse is None or not bool(torch.isfinite(mse)) else mse_to_psnr(mse)
 
-    def step(self) -> dict:
+    def step(self, interlude: Callable[[], None] | None = None) -> dict:
         """One edit step on a random view; returns its losses, the unmasked PSNR ('psnr', when the step was not
-        skipped) and whether it was skipped."""
+        skipped) and whether it was skipped. `interlude()`, when given, runs once the guidance has been computed,
+        before the backward pass (the editor's worker renders a new view there); its time is not the step's."""
         with self._lock:
             t0 = time.perf_counter()
             self.field.train()
@@ -305,6 +306,10 @@ class RepaintTrainer:
                 if fl is not None:
                     total = total + fl
                     info["field"] = float(fl.detach())
+                if interlude is not None:
+                    paused = time.perf_counter()
+                    interlude()
+                    t0 += time.perf_counter() - paused
                 if bool(torch.isfinite(total)):
                     total.backward()
                     before = self.optimizer.skipped_steps
@@ -396,13 +401,15 @@ class RepaintTrainer:
                 callback(info)
         return info
 
-    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None) -> dict:
+    def train_for(self, seconds: float, stop: Callable[[], bool] | None = None,
+                  interlude: Callable[[], None] | None = None) -> dict:
         """Step for about `seconds` (at least one step), ending early once `stop()` turns true; the editor's
-        worker calls this between renders and stops it when the user moves the camera."""
+        worker calls this between renders and stops it when the user moves the camera, and renders a new view
+        within a step through `interlude` (`step`)."""
         info: dict = {"phase": "repaint", "step": self.step_count, "done": self.done}
         t_end = time.perf_counter() + seconds
         while not self.done and not self._cancel.is_set() and not self._paused.is_set():
-            info = self.step()
+            info = self.step(interlude)
             if time.perf_counter() >= t_end or (stop is not None and stop()):
                 break
         info = dict(info)
