@@ -46,9 +46,10 @@ def _mean(xs: list[float]) -> float | None:
     return sum(xs) / len(xs) if xs else None
 
 
-def render_ms(trainer, repeats: int = 1) -> tuple[float, float]:
-    """(median ms, samples per ray) of rendering test view 0 at its full size, as `render` does (no sample cap;
-    no warm-up: the renderer has run in every evaluation before)."""
+def render_ms(trainer, repeats: int = 3, warmup: int = 1) -> tuple[float, float]:
+    """(median ms, samples per ray) of rendering test view 0 at its full size, as `render` does (no sample cap),
+    after `warmup` untimed renders: the evaluations before render a grid of pixels, not a full view, so the first
+    full view pays for touching its buffers (ethiopian_head at 256 px: 656 ms, then 327-337 ms)."""
     import torch
 
     from repaint_nerf.core.device import synchronize
@@ -60,12 +61,13 @@ def render_ms(trainer, repeats: int = 1) -> tuple[float, float]:
     trainer.field.eval()
     times, spr = [], 0.0
     with torch.no_grad():
-        for _ in range(repeats):
+        for i in range(warmup + repeats):
             synchronize(trainer.device)
             t0 = time.perf_counter()
             out = render_camera(trainer.field, trainer.grid, cams, 0, opts)
             synchronize(trainer.device)
-            times.append(time.perf_counter() - t0)
+            if i >= warmup:
+                times.append(time.perf_counter() - t0)
             spr = float(out["stats"]["samples_per_ray"])
     trainer.field.train()
     return 1000.0 * sorted(times)[len(times) // 2], spr
