@@ -407,6 +407,41 @@ def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path
     assert ws.original_version.id == v.id and ws.current_version.kind == "stage1"
 
 
+def test_the_grid_rate_grows_with_the_image_on_a_cpu_only():
+    """The paper's rate up to 256 px, 3x from 512 px (a step touches a large image's fine entries rarely), 1x on CUDA."""
+    from repaint_nerf.core.train.stage1 import grid_lr_factor_for
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert [grid_lr_factor_for(cpu, s) for s in (32, 128, 256, 512, 1000, 4000)] == [1.0, 1.0, 1.0, 3.0, 3.0, 3.0]
+    assert grid_lr_factor_for(cpu, 362) == pytest.approx(1.0 + 2.0 * math.log2(362 / 256))
+    assert grid_lr_factor_for(cuda, 512) == grid_lr_factor_for(cuda, 32) == 1.0
+
+
+def test_the_grid_rate_factor_holds_through_the_schedule_and_a_resume(tiny_scene, standin_field, tmp_path):
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
+    from repaint_nerf.core.workspace.workspace import Workspace
+
+    _, scene = tiny_scene
+    auto = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
+    assert auto.cfg.grid_lr_factor == 1.0  # 32 px: the paper's rate for every group
+
+    def rates(tr):
+        return {g["name"]: g["lr"] for g in tr.optimizer.param_groups}
+
+    ws = Workspace.create(tmp_path / "ws")
+    tr = Stage1Trainer(scene, ws, _cfg(rays_per_batch=256, grid_lr_factor=3.0, horizon_steps=40))
+    assert rates(tr)["grid"] == pytest.approx(3.0 * tr.cfg.lr)
+    tr.train(steps=20)
+    scheduled = tr._set_lr()  # the paper's rate at this point of the schedule
+    assert scheduled < tr.cfg.lr and rates(tr)["grid"] == pytest.approx(3.0 * scheduled)
+    tr.save_checkpoint()
+    tr2 = Stage1Trainer(scene, ws, _cfg(rays_per_batch=256, grid_lr_factor=3.0, horizon_steps=40))
+    assert tr2.resume()
+    tr2.step()
+    tr.step()
+    assert rates(tr2) == pytest.approx(rates(tr))
+
+
 # -- command line ----------------------------------------------------------------------------------------------
 def test_cli_train_and_render(tiny_scene, field_impl, tmp_path, capsys):
     from repaint_nerf.app.cli import main

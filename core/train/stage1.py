@@ -60,6 +60,7 @@ class TrainConfig:
     samples_per_batch: int = 65536
     min_rays_divisor: int = 8
     lr: float = 1e-2  # paper: Adam, 1e-2
+    grid_lr_factor: float = 0.0  # the hash grid's rate is lr x this; 0 = auto (grid_lr_factor_for)
     betas: tuple[float, float] = (0.9, 0.99)  # official code
     eps: float = 1e-15
     weight_decay_mlp: float = 1e-6  # instant-ngp's L2 on the MLP weights (not on the hash table)
@@ -188,6 +189,26 @@ def grid_resolution_for(device: torch.device) -> int:
     return 128 if device.type == "cuda" else 64
 
 
+def grid_lr_factor_for(device: torch.device, image_side: int) -> float:
+    """The hash grid's learning rate over the MLP's: 1 up to 256 px, growing to 3 at 512 px and above on a CPU;
+    1 on CUDA (instant-ngp's one rate for both).
+
+    Why: a step's 4096 rays touch a fine level's entries less often the larger the image (16x the pixels at 512 px
+    than at 128, and a 4x table: field.cpu_log2_table), and a CPU run has only ~1000 steps in its first minutes.
+    Adam moves an entry about lr per touch, so the fine detail of a large image waits on its step count (570-860
+    steps to 25 dB at 512 px whatever the rays or table: docs/ARCHITECTURE.md). Measured on 2 cores, one run
+    each, x3 against x1: ethiopian_head at 512 px 25 dB at 43.1 / 64.3 s (and 38.0 / 62.3 s), fox (288x512)
+    +0.25 / +0.47 / +0.71 dB at 30 / 60 / 90 s (side by side over 300 s: +0.48 / +0.78 / +0.94 dB at 60 / 120 /
+    300 s), fern (504x378) +0.36 / +0.52 / +0.42 dB. At 128 px x3 came to
+    25 dB later (11.2 against 8.4 s): the early coarse fit wants the paper's rate, so small images keep it."""
+    if device.type != "cpu":
+        return 1.0
+    return 1.0 + 2.0 * min(max(math.log2(max(image_side, 1) / GRID_LR_FROM_PX), 0.0), 1.0)
+
+
+GRID_LR_FROM_PX = 256  # grid_lr_factor_for: the paper's rate up to this long side
+
+
 SAMPLE_BUDGET_MAX = 256  # steps across the diagonal at any image size (TrainConfig.max_samples sets more)
 
 
@@ -292,6 +313,8 @@ class Stage1Trainer:
             self.cfg = dataclasses.replace(self.cfg, max_samples=sample_budget(side))
         if self.cfg.grid_resolution <= 0:
             self.cfg = dataclasses.replace(self.cfg, grid_resolution=grid_resolution_for(self.device))
+        if self.cfg.grid_lr_factor <= 0:
+            self.cfg = dataclasses.replace(self.cfg, grid_lr_factor=grid_lr_factor_for(self.device, side))
 
         self.feature_stream = None  # codes still arriving (core.teachers.feature_stream)
         self.feature_ready: torch.Tensor | None = None  # per image: its codes are in self.features
@@ -355,12 +378,16 @@ class Stage1Trainer:
             params = [p for p in params if p.requires_grad]
             if params:
                 wd = self.cfg.weight_decay_mlp if name in ("mlp", "feature") else 0.0
-                groups.append({"params": params, "lr": self.cfg.lr, "weight_decay": wd, "name": name})
+                groups.append({"params": params, "lr": self._group_lr(name), "weight_decay": wd, "name": name})
         kw = dict(lr=self.cfg.lr, betas=tuple(self.cfg.betas), eps=self.cfg.eps)
         try:
             return torch.optim.Adam(groups, fused=True, **kw)
         except (RuntimeError, TypeError):
             return torch.optim.Adam(groups, foreach=True, **kw)
+
+    def _group_lr(self, name: str) -> float:
+        """Base learning rate of an optimiser group: lr, times grid_lr_factor for the hash grid."""
+        return self.cfg.lr * (self.cfg.grid_lr_factor if name == "grid" else 1.0)
 
     def _prepare_features(self, targets) -> torch.Tensor:
         """Per-image (h, w, K) feature codes as one flat float16 tensor. A stream (core.teachers.feature_stream)
@@ -805,7 +832,7 @@ class Stage1Trainer:
         self.grid.load_state_dict({**ckpt.section("grid"), **h.grid.state})
         load_optimizer_state(self.optimizer, {k: v.to(self.device) for k, v in ckpt.section("optim").items()},
                              h.optim or {})
-        self.base_lrs = [self.cfg.lr for _ in self.optimizer.param_groups]
+        self.base_lrs = [self._group_lr(g.get("name", "")) for g in self.optimizer.param_groups]
         self.gen.set_state(ckpt.tensors["rng.sampler"].cpu())
         torch.set_rng_state(ckpt.tensors["rng.torch"].cpu())
         self.step_count, self.train_seconds = h.step, h.train_seconds
