@@ -39,7 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resume", action="store_true", help="continue from the workspace's checkpoint")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default 4096, as in the paper)")
-    p.add_argument("--lr", type=float, default=None, help="Adam learning rate (default 1e-2, as in the paper; on a CPU the hash grid takes up to 3x it for images over 256 px)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate (default 1e-2, as in the paper; on a CPU the hash grid takes up to 3x it "
+                        "for images over 256 px)")
     p.add_argument("--max-samples", type=int, default=None,
                    help="steps across the field cube's diagonal (default: 2 per pixel of the images, 128..256; a long run may ask 512 or 1024)")
     p.add_argument("--distortion", type=float, default=None, metavar="W",

@@ -199,8 +199,8 @@ def grid_lr_factor_for(device: torch.device, image_side: int) -> float:
     steps to 25 dB at 512 px whatever the rays or table: docs/ARCHITECTURE.md). Measured on 2 cores, one run
     each, x3 against x1: ethiopian_head at 512 px 25 dB at 43.1 / 64.3 s (and 38.0 / 62.3 s), fox (288x512)
     +0.25 / +0.47 / +0.71 dB at 30 / 60 / 90 s (side by side over 300 s: +0.48 / +0.78 / +0.94 dB at 60 / 120 /
-    300 s), fern (504x378) +0.36 / +0.52 / +0.42 dB. At 128 px x3 came to
-    25 dB later (11.2 against 8.4 s): the early coarse fit wants the paper's rate, so small images keep it."""
+    300 s), fern (504x378) +0.36 / +0.52 / +0.42 dB. At 128 px x3 came to 25 dB later (11.2 against 8.4 s): the
+    early coarse fit wants the paper's rate, so small images keep it."""
     if device.type != "cpu":
         return 1.0
     return 1.0 + 2.0 * min(max(math.log2(max(image_side, 1) / GRID_LR_FROM_PX), 0.0), 1.0)
@@ -345,7 +345,6 @@ class Stage1Trainer:
             early = EARLY_SAMPLES_FINE if fine else EARLY_SAMPLES
             self.cfg = dataclasses.replace(self.cfg, early_max_samples=early)
         self.optimizer = self._make_optimizer()
-        self.base_lrs = [g["lr"] for g in self.optimizer.param_groups]
         self.schedule = LRSchedule(self.cfg.schedule, self.cfg.lr_final_factor, self.cfg.warmup)
         self.budget_steps: int | None = None
         self.budget_seconds: float | None = None
@@ -550,8 +549,8 @@ class Stage1Trainer:
 
     def _set_lr(self) -> float:
         f = self.schedule.factor(self.progress())
-        for g, base in zip(self.optimizer.param_groups, self.base_lrs):
-            g["lr"] = base * f
+        for g in self.optimizer.param_groups:
+            g["lr"] = self._group_lr(g["name"]) * f
         return self.cfg.lr * f
 
     def step(self, interlude: Callable[[], None] | None = None) -> dict[str, Any]:
@@ -832,7 +831,6 @@ class Stage1Trainer:
         self.grid.load_state_dict({**ckpt.section("grid"), **h.grid.state})
         load_optimizer_state(self.optimizer, {k: v.to(self.device) for k, v in ckpt.section("optim").items()},
                              h.optim or {})
-        self.base_lrs = [self._group_lr(g.get("name", "")) for g in self.optimizer.param_groups]
         self.gen.set_state(ckpt.tensors["rng.sampler"].cpu())
         torch.set_rng_state(ckpt.tensors["rng.torch"].cpu())
         self.step_count, self.train_seconds = h.step, h.train_seconds
