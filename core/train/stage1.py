@@ -193,10 +193,10 @@ def grid_lr_factor_for(device: torch.device, image_side: int) -> float:
     """The hash grid's learning rate over the MLP's: 1 up to 256 px, growing to 3 at 512 px and above on a CPU;
     1 on CUDA (instant-ngp's one rate for both).
 
-    Why: a step's 4096 rays touch a fine level's entries less often the larger the image (16x the pixels at 512 px
-    than at 128, and a 4x table: field.cpu_log2_table), and a CPU run has only ~1000 steps in its first minutes.
-    Adam moves an entry about lr per touch, so the fine detail of a large image waits on its step count (570-860
-    steps to 25 dB at 512 px whatever the rays or table: docs/ARCHITECTURE.md). Measured on 2 cores, one run
+    Why: a large image's run waits on its step count (570-860 steps to 25 dB at 512 px whatever the rays or table:
+    docs/ARCHITECTURE.md), and a CPU run has only ~1000 steps in its first minutes. What the higher rate moves is the
+    coarse levels (at most 128 cells a side): at 512 px, x3 on those alone reached 25 dB at 43.0 s, on the finer
+    ones alone at 63.7 s, on all at 42.8 s (one run each, the same hour). Measured on 2 cores, one run
     each, x3 against x1: ethiopian_head at 512 px 25 dB at 43.1 / 64.3 s (and 38.0 / 62.3 s), fox (288x512)
     +0.25 / +0.47 / +0.71 dB at 30 / 60 / 90 s (side by side over 300 s: +0.48 / +0.78 / +0.94 dB at 60 / 120 /
     300 s), fern (504x378) +0.36 / +0.52 / +0.42 dB. At 128 px x3 came to 25 dB later (11.2 against 8.4 s): the
