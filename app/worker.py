@@ -291,7 +291,10 @@ class Worker:
         cancel = self._stop.is_set if first else self._stale(req.serial)
         navigating = self._navigating() and "feature" not in req.outputs
         narrow = navigating and not self.nav_costly and self.nav_threads is not None
-        stride = self.controller.stride if first and navigating else 1.0  # a resting view refines at the full step
+        # A view's first frame marches the controller's step (over 1 only at the scale floor): a navigated view's,
+        # and a feature view's (the selection tool's first frame: it is shown while the sharp one renders). A
+        # resting view refines at the full step, and the sharp feature frame a patch reads is a refinement.
+        stride = self.controller.stride if first and (navigating or "feature" in req.outputs) else 1.0
         t0 = time.perf_counter()
         with threads(self.nav_threads if narrow else None):
             data = self.engine.render(req.cameras, scale=scale, outputs=req.outputs, cancel=cancel, stride=stride)

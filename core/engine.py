@@ -74,6 +74,7 @@ class FeatureView(NamedTuple):
     opacity: np.ndarray
     camera: object
     expected_depth: np.ndarray
+    coarse: bool = False  # marched a longer step (a view's first frame at the scale floor): a patch re-renders
 
 
 @dataclasses.dataclass
@@ -279,7 +280,8 @@ class Engine:
             cam = cameras.to("cpu")[0]
             self._feature_cache = FeatureView(self._camera_key(cameras), out["feature"].float().cpu(),
                                               _np(out["median_depth"]), _np(out["opacity"]),
-                                              cam if scale == 1.0 else cam.scaled(scale), _np(out["depth"]))
+                                              cam if scale == 1.0 else cam.scaled(scale), _np(out["depth"]),
+                                              stride != 1.0)
         result: dict = {k: _np(v) for k, v in out.items() if isinstance(v, torch.Tensor)}
         result["capped"] = capped  # the finest render this view gets: the viewport needs no refinement
         if self.selection is not None and "feature" in out:
@@ -302,10 +304,10 @@ class Engine:
         """The maps a patch on this view reads: the newest feature render of this camera, unless it is coarser
         than the automatic threshold evaluates (`autothreshold.EVAL_SIDE`), as the first frame after switching to
         the patch tool is (on the fox capture 49x27 or 61x34 px: the same patch took thresholds from 0.665 to 0.84
-        with the scale of the frame on screen); then a render of SELECT_SIDE px."""
+        with the scale of the frame on screen) or marched at a longer step; then a render of SELECT_SIDE px."""
         side = max(int(cameras.width[0]), int(cameras.height[0]))
         cached = self._feature_cache
-        if (cached is not None and cached.key == self._camera_key(cameras)
+        if (cached is not None and cached.key == self._camera_key(cameras) and not cached.coarse
                 and max(cached.feature.shape[:2]) >= min(side, EVAL_SIDE)):
             return cached
         self.render(cameras, scale=min(1.0, SELECT_SIDE / side), outputs=("feature",))

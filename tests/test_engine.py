@@ -180,7 +180,7 @@ def test_selection_needs_a_feature_head(scene_factory, tmp_path):
 def test_a_patch_selects_from_features_no_coarser_than_its_threshold_reads(engine, monkeypatch):
     """A patch on a view whose newest feature render is coarse (the first frame after switching to the patch tool)
     selects from a finer render, so its threshold does not depend on how soon the user dragged; a fine enough render
-    of the view is reused without rendering again."""
+    of the view is reused without rendering again, unless it marched a longer step."""
     engine.train_for(0.2)
     cams = engine.info()["cameras"][0]  # 24 px: under EVAL_SIDE, the view's own size is fine enough
     coarse = engine.render(cams, scale=0.25, outputs=("rgb", "feature"))
@@ -193,3 +193,6 @@ def test_a_patch_selects_from_features_no_coarser_than_its_threshold_reads(engin
     monkeypatch.setattr(engine, "render", lambda *a, **k: calls.append(k) or real(*a, **k))
     assert engine.select(cams, (0.4, 0.4, 0.6, 0.6)).similarity.shape == (24, 24)
     assert calls == [], "the view's fine feature render is reused"
+    real(cams, scale=1.0, outputs=("rgb", "feature"), stride=2.0)  # full size, but at a longer step
+    engine.select(cams, (0.4, 0.4, 0.6, 0.6))
+    assert len(calls) == 1 and calls[0].get("stride", 1.0) == 1.0, "a longer step's render is not read"

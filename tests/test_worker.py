@@ -272,7 +272,8 @@ class StrideEngine(TimedEngine):
 
 def test_a_moving_view_at_the_floor_marches_the_controllers_stride_and_its_refinement_the_full_step():
     """The controller lengthens the step only at the scale floor; the first frame of a navigated view renders with
-    it, while the resting view's refinements and the selection tool's feature frames march the normal step."""
+    it, and so does a feature view's first frame (the selection tool's, shown while its sharp frame renders), while
+    the resting views' refinements march the normal step."""
     engine = StrideEngine(delay=0.02)  # at the 20 ms target: the controller keeps its scale and stride
     worker = Worker(engine, target_ms=20.0, rest_s=0.05, nav_hold_s=5.0, nav_threads=None)
     worker.controller.scale, worker.controller.stride = worker.controller.min_scale, 3.0
@@ -282,13 +283,15 @@ def test_a_moving_view_at_the_floor_marches_the_controllers_stride_and_its_refin
         worker.request_render("a", key=("a",))
         _frames(worker, lambda fs: any(f.final for f in fs))
         worker.request_render("b", key=("b",), outputs=("rgb", "feature"))
-        _frames(worker, lambda fs: len(fs) >= 1)
+        _frames(worker, lambda fs: any(f.final and f.key == ("b",) for f in fs))
     finally:
         worker.stop()
     first, *refined = [e for e in engine.strides if "feature" not in e[2]]
     assert first[:2] == (worker.controller.min_scale, 3.0)
     assert refined and all(stride == 1.0 for _, stride, _ in refined) and refined[-1][0] == 1.0
-    assert [stride for _, stride, out in engine.strides if "feature" in out][0] == 1.0
+    first_feature, *refined_feature = [e for e in engine.strides if "feature" in e[2]]
+    assert first_feature[:2] == (worker.controller.min_scale, 3.0)
+    assert refined_feature and all(stride == 1.0 for _, stride, _ in refined_feature)
 
 
 class SteppingEngine(SlowEngine):
