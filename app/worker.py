@@ -356,9 +356,10 @@ class Worker:
                         or (self._latest is not None and self._latest.serial != serial))
 
     def _interlude(self) -> None:
-        """Within a training step, before its backward pass: render the first frame of a view requested since the
-        step began (a camera move, a tool switch's feature frame), so it waits for at most a forward pass, not a
-        whole step (fox: 55 + 35 ms; an edit's step: its render and guidance, not its backward pass too).
+        """Within a training step (at each marching round's start, before the differentiable pass, before the
+        backward pass): render the first frame of a view requested since the step began (a camera move, a tool
+        switch's feature frame), so it waits for a marching round or the differentiable pass, not a whole step (fox:
+        55 + 35 ms; an edit's step: its render and guidance, not its backward pass too).
         Refinements and commands wait for the step's end: a command may replace the model the step trains."""
         with self._lock:
             req = self._latest

@@ -205,10 +205,10 @@ def test_seeded_and_reproducible(tiny_scene, standin_field):
     assert runs[0] == runs[1]
 
 
-def test_an_interlude_between_forward_and_backward_changes_neither_the_update_nor_the_step_time(tiny_scene,
-                                                                                               field_impl):
-    """The editor's worker renders a new view within a step (`interlude`): the render sees the parameters before
-    the update, the update is the one a step without it makes, and the interlude's time is not the step's."""
+def test_an_interlude_within_the_forward_pass_changes_neither_the_update_nor_the_step_time(tiny_scene, field_impl):
+    """The editor's worker renders a new view within a step (`interlude`): at each marching round's start, before
+    the differentiable pass and after the forward pass. The render sees the parameters before the update, the
+    update is the one a step without it makes, and the interlude's time is not the step's."""
     import time
 
     from repaint_nerf.core.render.renderer import RenderOptions, render_rays
@@ -218,22 +218,26 @@ def test_an_interlude_between_forward_and_backward_changes_neither_the_update_no
     plain = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))
     a = plain.step()
     paused = Stage1Trainer(scene, None, _cfg(rays_per_batch=256))  # seeded as `plain` was
-    seen = []
+    seen, differentiable, at_call = [], [], []
+    paused.field.grid.register_forward_hook(lambda m, i, o: differentiable.append(1) if torch.is_grad_enabled()
+                                            else None)
 
     def interlude():
         assert all(p.grad is None for p in paused.field.parameters())  # before the backward pass
+        at_call.append(len(differentiable))
         o = torch.zeros(64, 3, device=paused.device) + torch.tensor([0.0, 0.0, -2.0], device=paused.device)
-        d = torch.nn.functional.normalize(torch.randn(64, 3, device=paused.device) * 0.1
-                                          + torch.tensor([0.0, 0.0, 1.0], device=paused.device), dim=-1)
+        jitter = torch.randn(64, 3, generator=torch.Generator().manual_seed(len(seen))).to(paused.device)
+        d = torch.nn.functional.normalize(jitter * 0.1 + torch.tensor([0.0, 0.0, 1.0], device=paused.device), dim=-1)
         paused.field.eval()
         with torch.no_grad():
             seen.append(render_rays(paused.field, paused.grid, o, d, RenderOptions(outputs=("rgb",)))["rgb"])
         paused.field.train()
-        time.sleep(1.0)
+        time.sleep(0.3)
 
     b = paused.step(interlude)
-    assert len(seen) == 1 and torch.isfinite(seen[0]).all()
-    assert a["loss"] == b["loss"] and b["seconds"] < 1.0 and paused.train_seconds < 1.0
+    assert len(seen) >= 3 and all(torch.isfinite(x).all() for x in seen)
+    assert at_call[0] == 0 and at_call[-2] == 0 and at_call[-1] >= 1  # before the differentiable pass, and after
+    assert a["loss"] == b["loss"] and b["seconds"] < 0.3 and paused.train_seconds < 0.3
     for p, q in zip(plain.field.parameters(), paused.field.parameters()):
         assert torch.equal(p, q)
 

@@ -61,6 +61,10 @@ class RenderOptions:
     # the feature of the ray's first surface only (core.render.composite, `first_surface`): what a selection reads,
     # so a nearer object that covers the selected one is not blended with it; False: composited along the ray
     feature_first_surface: bool = False
+    # training only: called at each marching round's start and before the differentiable pass, where the trainer's
+    # interlude (Stage1Trainer.step) renders a view the user asked for mid-step, so it waits for a round, not the
+    # forward pass (the fox: 50-63 ms of a tool switch's 100-110)
+    pause: Callable[[], None] | None = None
 
 
 @dataclass
@@ -189,6 +193,8 @@ def _march(field, grid: OccupancyGrid | None, o: Tensor, d: Tensor, plan: RayPla
     while True:
         if cancel is not None and cancel():
             return None
+        if opts.pause is not None:
+            opts.pause()
         with _Timer(acc, "sampling", prof, dev):
             ids = alive.nonzero(as_tuple=True)[0]
             if ids.numel() == 0:
@@ -245,6 +251,8 @@ def _render_block(field, grid, o, d, plan, heads, opts, strategy, acc, dev, canc
         return None
     totals, kept = marched
     if strategy == "filter" or not totals:
+        if opts.pause is not None:
+            opts.pause()
         with _Timer(acc, "sampling", prof, dev):
             s = cat_samples(kept, dev)
         with _Timer(acc, "field", prof, dev):

@@ -555,9 +555,10 @@ class Stage1Trainer:
 
     def step(self, interlude: Callable[[], None] | None = None) -> dict[str, Any]:
         """One optimisation step; returns the loss parts, the batch PSNR, the LR and the seconds it took.
-        `interlude()`, when given, runs between the forward and the backward pass (the editor's worker serves a new
-        view there, so a camera move or a tool switch waits for a forward pass, not for a whole step); its time is
-        not the step's.
+        `interlude()`, when given, runs at each marching round's start, before the differentiable pass and between
+        the forward and the backward pass (the editor's worker serves a new view there, so a camera move or a tool
+        switch waits for a marching round or the differentiable pass, not for a whole step); its time is not the
+        step's. It must leave the parameters, the occupancy grid and torch's random state as it found them.
 
         With `self.profile` set, `self.last_times` gets per-stage seconds (synchronising the device). While a
         feature stream's teacher runs on the CPU, the step leaves it its threads: both pools on the same cores
@@ -582,6 +583,15 @@ class Stage1Trainer:
                 times[key] = times.get(key, 0.0) + now - tick
                 tick = now
 
+        def pause() -> None:
+            """The interlude, off the step's clock."""
+            nonlocal t0, tick
+            paused = time.perf_counter()
+            interlude()
+            held = time.perf_counter() - paused
+            t0 += held
+            tick += held
+
         self.field.train()
         self.grid.update(self.step_count, self.field.density)
         lap("grid_update")
@@ -598,7 +608,8 @@ class Stage1Trainer:
             outputs = self.outputs
         opts = RenderOptions(outputs=outputs, background=batch["background"], t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=self.cfg.perturb, profile=prof,
-                             one_pass=one_pass, appearance=batch["image"])
+                             one_pass=one_pass, appearance=batch["image"],
+                             pause=None if interlude is None else pause)
         out = render_rays(self.field, self.grid, batch["origins"], batch["dirs"], opts)
         stats = out.get("stats") or {}
         if not one_pass and stats.get("density_samples"):
@@ -624,11 +635,7 @@ class Stage1Trainer:
             self._reopen_worst(batch, out)  # the batch before an update: its cells open for the next period
         lap("forward")
         if interlude is not None:
-            paused = time.perf_counter()
-            interlude()
-            resumed = time.perf_counter()
-            t0 += resumed - paused
-            tick += resumed - paused
+            pause()
         self.optimizer.zero_grad(set_to_none=True)
         finite = bool(torch.isfinite(total))
         if finite:
