@@ -91,7 +91,8 @@ def test_trainer_step_is_eq_s2_on_the_view_it_rendered(scene, reduction, monkeyp
                   unmask_margin=0, perturb=False, unmask_ramp=0.0)
     seen = {}
     real = tr.render_view
-    monkeypatch.setattr(tr, "render_view", lambda v, grad=True: seen.setdefault("rgb", real(v, grad)))
+    monkeypatch.setattr(tr, "render_view",
+                        lambda v, grad=True, pause=None: seen.setdefault("rgb", real(v, grad, pause)))
     info = tr.step()
     rgb = seen["rgb"].detach()[0].double().numpy()
     target = tr.images[info["view"]].permute(2, 0, 1).double().numpy()

@@ -250,11 +250,12 @@ class RepaintTrainer:
         return st
 
     # -- one step -----------------------------------------------------------------------------------
-    def render_view(self, view: int, grad: bool = True) -> Tensor:
-        """Render training view `view` at the edit resolution as (1, 3, H, W) (rgb only)."""
+    def render_view(self, view: int, grad: bool = True, pause: Callable[[], None] | None = None) -> Tensor:
+        """Render training view `view` at the edit resolution as (1, 3, H, W) (rgb only); `pause` as
+        RenderOptions.pause (the step's interlude)."""
         o, d = self.rays[view]
         opts = RenderOptions(outputs=("rgb",), background=self.background, t_threshold=self.cfg.t_threshold,
-                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb and grad)
+                             max_samples=self.cfg.max_samples, perturb=self.cfg.perturb and grad, pause=pause)
         with torch.set_grad_enabled(grad):
             out = render_rays(self.field, self.grid, o, d, opts)
         h, w = self.size
@@ -274,8 +275,16 @@ class RepaintTrainer:
 
     def step(self, interlude: Callable[[], None] | None = None) -> dict:
         """One edit step on a random view; returns its losses, the unmasked PSNR ('psnr', when the step was not
-        skipped) and whether it was skipped. `interlude()`, when given, runs once the guidance has been computed,
-        before the backward pass (the editor's worker renders a new view there); its time is not the step's."""
+        skipped) and whether it was skipped. `interlude()`, when given, runs at each marching round's start and
+        before the differentiable pass of the view's render, and once the guidance has been computed, before the
+        backward pass (the editor's worker renders a new view there); its time is not the step's."""
+
+        def pause() -> None:
+            nonlocal t0
+            paused = time.perf_counter()
+            interlude()
+            t0 += time.perf_counter() - paused
+
         with self._lock:
             t0 = time.perf_counter()
             self.field.train()
@@ -284,7 +293,7 @@ class RepaintTrainer:
             progress = self.step_count / max(1, self.cfg.steps)
             self.optimizer.set_lr_factor(self.schedule.factor(progress))
             view = int(torch.randint(0, len(self.rays), (1,), generator=self.gen))
-            rgb = self.render_view(view)
+            rgb = self.render_view(view, pause=None if interlude is None else pause)
             mask = self.masks[view][None, None]
             g = self.guidance.loss(rgb, mask, view, self.step_count)
             info: dict[str, Any] = {"view": view, "t": int(g.get("t", 0)), "guidance": float(g["loss"].detach())}
@@ -307,9 +316,7 @@ class RepaintTrainer:
                     total = total + fl
                     info["field"] = float(fl.detach())
                 if interlude is not None:
-                    paused = time.perf_counter()
-                    interlude()
-                    t0 += time.perf_counter() - paused
+                    pause()
                 if bool(torch.isfinite(total)):
                     total.backward()
                     before = self.optimizer.skipped_steps
