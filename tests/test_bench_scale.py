@@ -27,7 +27,9 @@ def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
         assert e["train_seconds"] >= 3.0 and e["peak_rss_mb"] > 100
         assert 1 <= e["steps_early"] <= e["steps"] and e["steps_per_s_early"] > 0  # the first second's steps
         assert (e["steps_per_s"] is None) == (e["steps_early"] == e["steps"])
-        assert len(e["curve"]) == 2 and e["curve"][0]["step"] == 0 and e["curve"][1]["step"] == e["steps"]
+        # the evenly spaced evaluation (the end) and one every second before it (--dense-until's default, 10 s)
+        assert [round(p["seconds"]) for p in e["curve"][:-1]] == [0, 1, 2] and e["curve"][-1]["seconds"] >= 3.0
+        assert e["curve"][0]["step"] == 0 and e["curve"][-1]["step"] == e["steps"]
         assert all(key in e for key in ("steps_to_10", "steps_to_12.5", "msamples_to_10", "msamples_to_12.5"))
         assert "seconds_to_30" not in e
         assert e["seconds_to_10"] is not None and e["final_psnr"] > 10
@@ -35,7 +37,7 @@ def test_bench_scale_writes_the_schema(scene_factory, tmp_path, capsys):
         steps = [r["step"] for r in e["trace"]]  # the trace follows training in order
         assert steps and steps == sorted(steps) and steps[-1] <= e["steps"]
         assert all(r["steps_per_s"] > 0 and r["samples_per_ray"] > 0 and 0 <= r["occupied"] <= 1 for r in e["trace"])
-    assert res["isolated_processes"] and "bounded evaluation" in res["psnr_measured"]
+    assert res["isolated_processes"] and "bounded evaluation" in res["psnr_measured"] and res["dense_until"] == 10
     assert out.with_suffix(".png").stat().st_size > 1000
     printed = capsys.readouterr().out
     assert "wrote" in printed and "s->12.5" in printed and "s->30" not in printed
@@ -55,6 +57,13 @@ def test_bench_scale_bad_targets_are_a_user_error(tmp_path, capsys):
         assert main(["bench", "scale", "--sizes", "32", "--targets", bad, "--json", str(tmp_path / "o.json")]) != 0
         assert "--targets" in capsys.readouterr().err
     assert not (tmp_path / "o.json").exists()  # refused before any training
+
+
+def test_bench_scale_a_negative_dense_until_is_a_user_error(tmp_path, capsys):
+    from repaint_nerf.app.cli import main
+
+    assert main(["bench", "scale", "--sizes", "32", "--dense-until", "-1", "--json", str(tmp_path / "o.json")]) != 0
+    assert "--dense-until" in capsys.readouterr().err and not (tmp_path / "o.json").exists()
 
 
 def test_time_to_interpolates_between_evaluations():

@@ -6,7 +6,7 @@ import argparse
 import tempfile
 from pathlib import Path
 
-from repaint_nerf.core.bench.scale import TARGETS, measure
+from repaint_nerf.core.bench.scale import DENSE_UNTIL, TARGETS, measure
 
 HELP = "cost against image size: time to target PSNRs, steps/s, samples per ray, render ms, evaluation, peak RSS"
 
@@ -48,6 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="test PSNRs (dB) to time, comma-separated; the size ratios are read at the highest")
     p.add_argument("--seconds", type=float, default=60.0, help="training budget per size (evaluation not counted)")
     p.add_argument("--evals", type=int, default=12, help="test evaluations along each size's training")
+    p.add_argument("--dense-until", type=int, default=DENSE_UNTIL,
+                   help="also evaluate every second of the first this many training seconds (0: only --evals)")
     p.add_argument("--early-seconds", type=float, default=30.0, help="training seconds counted as early steps")
     p.add_argument("--rays", type=int, default=None, help="rays per batch (default: the trainer's)")
     p.add_argument("--early-max-samples", type=int, default=None,
@@ -115,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--seconds must be positive, got {args.seconds}")
     if args.evals < 1:
         raise UserError(f"--evals must be at least 1, got {args.evals}")
+    if args.dense_until < 0:
+        raise UserError(f"--dense-until must be 0 or more seconds, got {args.dense_until}")
     tmp = None
     if args.scene:
         scene_path = Path(args.scene)
@@ -145,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(scene_path, sizes, args.seconds, args.evals, args.seed, args.device, args.rays,
                          args.early_seconds, args.early_max_samples, isolate=not args.in_process,
-                         progress=progress, targets=targets)
+                         progress=progress, targets=targets, dense_until=args.dense_until)
     finally:
         if tmp is not None:
             tmp.cleanup()

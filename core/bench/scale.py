@@ -13,16 +13,21 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from repaint_nerf.core.bench.recon import time_to
+from repaint_nerf.core.bench.recon import eval_times, time_to
 
 TARGETS = (25.0, 30.0)
 EARLY_SECONDS = 30.0  # training seconds counted as "early" (an untrained, foggy field)
 TRACE_POINTS = 60  # rows of the per-size trace (steps/s, samples per ray, grid occupancy along training)
+# Evaluations every second up to this many training seconds, besides the evenly spaced ones: a 128-px real capture
+# crosses its targets within 5-10 s, between the evenly spaced evaluations of a 120-s run (5 s apart), where a
+# linear interpolation of a curve that rises fastest first placed its crossing late, and the size ratios low
+DENSE_UNTIL = 10
 PSNR_MEASURE = ("test PSNR of the bounded evaluation (Stage1Trainer.evaluate: EVAL_VIEWS test views spread over "
                 "the split, an EVAL_GRID x EVAL_GRID grid of pixels spread over each view, at most EVAL_SAMPLE_CAP "
                 "samples per ray), "
-                "run at `evals` evenly spaced points of the training budget; evaluation time is not counted as "
-                "training time; seconds_to_* interpolate linearly between evaluations")
+                "run at `evals` evenly spaced points of the training budget and every second of the first "
+                "`dense_until` seconds; evaluation time is not counted as training time; seconds_to_* interpolate "
+                "linearly between evaluations")
 
 
 def goal_target(result: dict | None) -> float:
@@ -76,7 +81,7 @@ def render_ms(trainer, repeats: int = 3, warmup: int = 1) -> tuple[float, float]
 def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, seed: int = 0,
                  device: str | None = None, rays: int | None = None,
                  early_seconds: float = EARLY_SECONDS, early_max_samples: int | None = None,
-                 targets: tuple[float, ...] = TARGETS) -> dict:
+                 targets: tuple[float, ...] = TARGETS, dense_until: int = DENSE_UNTIL) -> dict:
     """Train the scene loaded at long side `size` for `seconds` (evaluation excluded) and measure it; one
     entry of the `sizes` list (see the module docstring), with seconds_to_<t> for each of `targets` (dB).
     `early_max_samples` overrides TrainConfig's (0 = the image's sample budget from the first step, as before
@@ -123,8 +128,8 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
     ev = trainer.evaluate()
     eval_total += ev["seconds"]
     curve = [{"seconds": 0.0, "step": 0, "msamples": 0.0, "psnr": ev["psnr"]}]
-    for k in range(1, evals + 1):
-        trainer.train(seconds=seconds * k / evals, callback=on_step)
+    for t in eval_times(seconds, evals, report_at=tuple(range(1, int(dense_until) + 1)), minute_curve=False):
+        trainer.train(seconds=t, callback=on_step)
         ev = trainer.evaluate()
         eval_total += ev["seconds"]
         curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "msamples": work["samples"] / 1e6,
@@ -173,13 +178,14 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
 def measure(scene_path: str | Path, sizes: list[int], seconds: float, evals: int = 12, seed: int = 0,
             device: str | None = None, rays: int | None = None, early_seconds: float = EARLY_SECONDS,
             early_max_samples: int | None = None, isolate: bool = True, progress: Callable[[dict], None] | None = None,
-            targets: tuple[float, ...] = TARGETS) -> dict:
+            targets: tuple[float, ...] = TARGETS, dense_until: int = DENSE_UNTIL) -> dict:
     """`measure_size` for each size, each in a fresh spawned process when `isolate` (peak RSS per size);
     `progress(entry)` gets each size's entry as it completes."""
     entries = []
     for size in sizes:
         kw = dict(evals=evals, seed=seed, device=device, rays=rays, early_seconds=early_seconds,
-                  early_max_samples=early_max_samples, targets=tuple(float(t) for t in targets))
+                  early_max_samples=early_max_samples, targets=tuple(float(t) for t in targets),
+                  dense_until=int(dense_until))
         if isolate:
             with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
                 entry = pool.submit(measure_size, str(scene_path), int(size), float(seconds), **kw).result()
@@ -194,6 +200,7 @@ def measure(scene_path: str | Path, sizes: list[int], seconds: float, evals: int
         "seconds_per_size": float(seconds),
         "targets": [float(t) for t in targets],
         "early_seconds": float(early_seconds),
+        "dense_until": int(dense_until),
         "psnr_measured": PSNR_MEASURE,
         "isolated_processes": bool(isolate),
         "peak_rss_measured": "ru_maxrss of the process that ran the size" + (
