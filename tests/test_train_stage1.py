@@ -412,7 +412,7 @@ def test_checkpoint_resume_and_identical_render(tiny_scene, field_impl, tmp_path
 
 
 def test_the_grid_rate_grows_with_the_image_on_a_cpu_only():
-    """The paper's rate up to 256 px, 3x from 512 px (a step touches a large image's fine entries rarely), 1x on CUDA."""
+    """The paper's rate up to 256 px, 3x from 512 px (a large image's run waits on its step count), 1x on CUDA."""
     from repaint_nerf.core.train.stage1 import grid_lr_factor_for
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
