@@ -229,3 +229,38 @@ def test_first_surface_features_evaluated_on_their_rows_only_are_the_full_heads(
         assert torch.equal(sparse_out[k], full_out[k]), k
     assert float(full_out["opacity"].mean()) > 0.5 and float(full_out["feature"].abs().mean()) > 0.01
     assert 0 < sparse_rows < 0.8 * full_rows  # samples behind the first surface and of no weight were skipped
+
+
+@pytest.mark.parametrize("head", ["separate", "trunk"])
+@pytest.mark.parametrize("per_ray", [True, False])
+def test_inference_by_row_blocks_gives_the_whole_tensor_values(monkeypatch, head, per_ray):
+    """Without gradients on a CPU the field runs `INFER_ROWS` points at a time (smaller temporaries):
+    sigma, colour and features, all rows or chosen ones, equal the one-call path's, and `density` the same."""
+    from repaint_nerf.core.field import field as field_module
+
+    field = _field(feature_dim=6, feature_head=head, appearance_dim=4, appearance_count=3)
+    with torch.no_grad():
+        for p in field.parameters():
+            p.normal_(0.0, 0.3)
+    n, rays = 1000, 37
+    x = torch.rand(n, 3) * 2.4 - 1.2  # some points outside the cube: zero density there too
+    ray = torch.randint(0, rays, (n,)).sort().values
+    dirs = torch.nn.functional.normalize(torch.randn(rays, 3), dim=-1)
+    image = torch.randint(0, 3, (rays,))
+    args = (dirs, image, ray) if per_ray else (dirs[ray], image[ray], None)
+    picked = lambda sigma: (sigma > sigma.median()).nonzero(as_tuple=True)[0]  # noqa: E731
+    calls = [dict(outputs=("rgb",)), dict(outputs=("rgb", "feature")), dict(outputs=("feature",)),
+             dict(outputs=("rgb", "feature"), feature_rows=picked)]
+    results = {}
+    for rows in (10 ** 6, 128):  # one block, then 8 blocks and a short last one
+        monkeypatch.setattr(field_module, "INFER_ROWS", rows)
+        with torch.no_grad():
+            results[rows] = [field(x, args[0], appearance=args[1], ray=args[2], **kw) for kw in calls] + \
+                [{"sigma": field.density(x)}]
+    for whole, blocks in zip(results[10 ** 6], results[128]):
+        assert whole.keys() == blocks.keys()
+        for k in whole:
+            torch.testing.assert_close(blocks[k], whole[k], atol=1e-6, rtol=1e-5)
+    assert float(results[128][0]["rgb"].std()) > 0.05 and float((results[128][0]["sigma"] == 0).float().mean()) > 0.1
+    with_rows = results[128][3]["feature"]
+    assert 0 < int((with_rows.abs().sum(1) > 0).sum()) < n  # only the picked rows have features
