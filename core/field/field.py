@@ -181,7 +181,12 @@ class NGPField(nn.Module):
         if self.warp is not None:
             x = self.warp(x)
         if self._by_rows(x.shape[0]):
-            return self._forward_by_rows(x, d, outputs, appearance, ray, feature_rows)
+            return self._heads_by_rows(x, d, outputs, appearance, ray, feature_rows)
+        return self._heads(x, d, outputs, appearance, ray, feature_rows)
+
+    def _heads(self, x: Tensor, d: Tensor | None, outputs, appearance: Tensor | None, ray: Tensor | None,
+               feature_rows: Callable[[Tensor], Tensor] | None) -> dict[str, Tensor]:
+        """`forward` on warped points, in one call."""
         h = self._hidden(x)
         out_t = self.trunk_out(h)
         result = {"sigma": self.act(out_t[:, 0]) * self.inside(x).to(out_t.dtype)}
@@ -197,68 +202,53 @@ class NGPField(nn.Module):
                 result["feature"] = picked.new_zeros((x.shape[0], picked.shape[-1])).index_copy_(0, rows, picked)
         return result
 
-    def _forward_by_rows(self, x: Tensor, d: Tensor | None, outputs, appearance: Tensor | None,
-                         ray: Tensor | None, feature_rows: Callable[[Tensor], Tensor] | None) -> dict[str, Tensor]:
-        """`forward` without gradients, `INFER_ROWS` points at a time: the same values from smaller temporaries (see
-        `INFER_ROWS`). A trunk feature head on the rows `feature_rows`
-        picks evaluates their trunk again: cheaper than keeping (N, hidden) for a third of them."""
+    def _heads_by_rows(self, x: Tensor, d: Tensor | None, outputs, appearance: Tensor | None, ray: Tensor | None,
+                       feature_rows: Callable[[Tensor], Tensor] | None) -> dict[str, Tensor]:
+        """`_heads` without gradients, `INFER_ROWS` points at a time: the same values from smaller temporaries (see
+        `INFER_ROWS`). A block of per-ray calls takes the rays its points lie on. Features on the rows
+        `feature_rows` picks (a function of every point's sigma) follow the blocks; a trunk head evaluates those
+        rows' trunk again, cheaper than keeping (N, hidden) for a third of them."""
         n, rows = x.shape[0], INFER_ROWS
-        sigma = x.new_empty(n)
-        rgb = x.new_empty(n, 3) if "rgb" in outputs else None
-        feature = "feature" in outputs
-        every = feature and feature_rows is None
-        feat = x.new_empty(n, self.cfg.feature_dim) if every else None
-        view = self._view_term(d, appearance) if rgb is not None and ray is not None else None
+        chosen = "feature" in outputs and feature_rows is not None
+        heads = tuple(o for o in outputs if not (chosen and o == "feature"))
+        result: dict[str, Tensor] = {}
         for a in range(0, n, rows):
-            xb = x[a:a + rows]
-            h = self._hidden(xb)
-            out_t = self.trunk_out(h)
-            sigma[a:a + rows] = self.act(out_t[:, 0]) * self.inside(xb).to(out_t.dtype)
-            if rgb is not None:
-                vb = view.index_select(0, ray[a:a + rows]) if view is not None else self._view_term(
-                    d[a:a + rows], None if appearance is None else appearance[a:a + rows])
-                rgb[a:a + rows] = torch.sigmoid(self.color_net[1:](self._with_geo(vb, out_t)))
-            if every:
-                feat[a:a + rows] = self.feature_net(self.feature_grid(xb) if self.feature_grid is not None else h)
-        result = {"sigma": sigma}
-        if rgb is not None:
-            result["rgb"] = rgb
-        if feature and not every:
-            picked = feature_rows(sigma)
+            if ray is None:
+                part = self._heads(x[a:a + rows], None if d is None else d[a:a + rows], heads,
+                                   None if appearance is None else appearance[a:a + rows], None, None)
+            else:
+                rb = ray[a:a + rows]
+                r0, r1 = int(rb.min()), int(rb.max()) + 1
+                part = self._heads(x[a:a + rows], None if d is None else d[r0:r1], heads,
+                                   None if appearance is None else appearance[r0:r1], rb - r0, None)
+            for k, v in part.items():
+                if k not in result:
+                    result[k] = v.new_empty((n,) + tuple(v.shape[1:]))
+                result[k][a:a + rows] = v
+        if chosen:
+            picked = feature_rows(result["sigma"])
             feat = x.new_zeros((n, self.cfg.feature_dim))
             for a in range(0, picked.shape[0], rows):
                 pb = picked[a:a + rows]
                 xp = x.index_select(0, pb)
                 src = self.feature_grid(xp) if self.feature_grid is not None else self._hidden(xp)
                 feat.index_copy_(0, pb, self.feature_net(src))
-        if feature:
             result["feature"] = feat
         return result
 
-    def _view_term(self, d: Tensor, appearance: Tensor | None) -> Tensor:
-        """The colour head's first layer on the view part of its input (SH(d), appearance code) plus its bias, per
-        row of d."""
+    def _color_input(self, out_t: Tensor, d: Tensor, appearance: Tensor | None, ray: Tensor | None) -> Tensor:
+        """The colour head's first layer on [geo features, SH(d), appearance code], split by its columns: the view
+        part (SH, code, bias) per row of d, gathered by `ray` when d is per ray, plus the geo part per point."""
         first: nn.Linear = self.color_net[0]
         g, k = self.cfg.geo_feat_dim, sh_dim(self.cfg.sh_degree)
         w = first.weight
         view = torch.addmm(first.bias, sh_encode(d, self.cfg.sh_degree).to(w.dtype), w[:, g:g + k].t())
         if self.appearance is not None:
             view = view + self.appearance(appearance, d.shape[0]).to(w.dtype) @ w[:, g + k:].t()
-        return view
-
-    def _with_geo(self, view: Tensor, out_t: Tensor) -> Tensor:
-        """`view` (one row per point, consumed) plus the first layer on the points' geo features."""
-        w = self.color_net[0].weight[:, :self.cfg.geo_feat_dim]
-        # in place: no (N, hidden) copy of the view term; in-place ops skip autocast, so the dtypes are made to match
-        return view.addmm_(out_t[:, 1:].to(view.dtype), w.t().to(view.dtype))
-
-    def _color_input(self, out_t: Tensor, d: Tensor, appearance: Tensor | None, ray: Tensor | None) -> Tensor:
-        """The colour head's first layer on [geo features, SH(d), appearance code], split by its columns: the view
-        part (SH, code, bias) per row of d, gathered by `ray` when d is per ray, plus the geo part per point."""
-        view = self._view_term(d, appearance)
         if ray is not None:
             view = view.index_select(0, ray)
-        return self._with_geo(view, out_t)
+        # in place: no (N, hidden) copy of the view term; in-place ops skip autocast, so the dtypes are made to match
+        return view.addmm_(out_t[:, 1:].to(view.dtype), w[:, :g].t().to(view.dtype))
 
     def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
         """Parameters by learning-rate group: 'grid' (hash table), 'mlp' (density + colour), 'feature' (feature head)."""
