@@ -159,7 +159,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     from repaint_nerf.core.select.geometry import GeometryParts, fit_parts, parts_named
 
     t = check_threshold(selection.threshold if threshold is None else threshold)
-    cache = cache or ViewCache(field, grid, cameras)
+    cache = cache if cache is not None else ViewCache(field, grid, cameras)  # an empty cache is falsy (__len__)
     n = len(cameras)
     sims, maps = [], []
     for i in range(n):
