@@ -292,7 +292,7 @@ def test_cleanup_drops_a_disconnected_look_alike(tmp_path):
     assert all(np.array_equal(a, b) for a, b in zip(saved, clean))
 
 
-def test_masks_render_through_the_cache_they_are_given_even_an_empty_one():
+def test_masks_render_through_the_cache_they_are_given_even_an_empty_one(monkeypatch):
     """The editor hands `masks_for_views` a fresh ViewCache with the trained sample budget: its renders go through
     that cache and its options, not through a new cache at the renderer's default budget (an empty cache is falsy:
     on the fox capture every view then marched 4x the budget, 7.5 s a view instead of 2.3)."""
@@ -310,12 +310,10 @@ def test_masks_render_through_the_cache_they_are_given_even_an_empty_one():
     sel.add_patch(render_view_maps(field, None, cams, 0, opts).feature, Patch(0, cx - 1, cy - 1, cx + 2, cy + 2))
     budgets = []
     real = renderer.render_camera
-    renderer.render_camera = lambda f, g, c, i, o=None, **k: (budgets.append(o.max_samples), real(f, g, c, i, o, **k))[1]
-    try:
-        cache = ViewCache(field, None, cams, render_opts=opts)
-        masks_for_views(field, None, cams, sel, cache=cache)
-    finally:
-        renderer.render_camera = real
+    monkeypatch.setattr(renderer, "render_camera",
+                        lambda f, g, c, i, o=None, **k: (budgets.append(o.max_samples), real(f, g, c, i, o, **k))[1])
+    cache = ViewCache(field, None, cams, render_opts=opts)
+    masks_for_views(field, None, cams, sel, cache=cache)
     assert len(cache) == len(cams) and budgets == [96] * len(cams)
 
 
