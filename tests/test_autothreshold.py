@@ -726,6 +726,21 @@ def test_the_views_vote_only_where_their_region_leaks():
     assert views_threshold(0.42, []) == 0.42
 
 
+def test_one_leaking_view_among_walled_ones_does_not_vote():
+    """A free-view patch on a fox: one of eight training views leaked at 0.80, the rest were walled in; its vote
+    alone moved 0.55 to 0.68. Two leaking views, or one of two, still vote."""
+    from repaint_nerf.core.select.autothreshold import AutoThreshold, views_threshold
+
+    def view(value, jump):
+        return AutoThreshold(value, np.zeros(0), np.zeros(0), jump)
+
+    walled = [view(v, None) for v in (0.54, 0.55, 0.57, 0.58, 0.59, 0.56, 0.57)]
+    assert views_threshold(0.551, walled + [view(0.80, 0.68)]) == 0.551
+    assert views_threshold(0.551, walled + [view(0.80, 0.68), view(0.76, 0.6)]) == pytest.approx(0.76)
+    assert views_threshold(0.551, [view(0.57, None), view(0.80, 0.68)]) == pytest.approx(0.6755)
+    assert views_threshold(0.551, [view(0.80, 0.68)]) == pytest.approx(0.6755)
+
+
 def test_a_training_view_patch_that_leaks_nowhere_takes_the_walled_views_median():
     """walled_views_threshold: a training-view patch whose own view shows no leak takes the median of its value
     and every other view's where none of them leaks either; one leaking view leaves its own value standing."""
