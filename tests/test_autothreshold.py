@@ -988,3 +988,85 @@ def test_otsu_threshold_matches_skimage_reference():
         if i % 7 == 0:
             v = np.round(v, 1)
         assert otsu_threshold(v) == threshold_otsu(v)
+
+
+def test_a_view_rough_only_once_downsampled_takes_its_edges_at_its_own_size():
+    """A disc in front of a wall of nearly its colour, at 512 px: the wall's inverse depth ripples gently (smooth at
+    512 px, rough at the 128 px the region grows at, as a real capture's wallpaper read on the fox). The region
+    stops at the disc's edge found at 512 px; the downsampled depth alone has no usable edges and let it over the
+    wall."""
+    from repaint_nerf.core.select.autothreshold import region_similarity
+    from repaint_nerf.core.select.geometry import rough_depth
+
+    rng = np.random.default_rng(5)
+    n = 512
+    yy, xx = np.mgrid[:n, :n].astype(np.float64)
+    disc = _disc(n, n, 256, 256, 100)
+    ripple = 1.0 + 0.05 * np.sin(2 * np.pi * xx / 32) * np.sin(2 * np.pi * yy / 32)
+    depth = np.where(disc, 3.0, 4.0 / ripple).astype(np.float32)
+    opacity = np.ones((n, n), np.float32)
+    small = depth[::4, ::4]
+    assert rough_depth([small], [opacity[::4, ::4]]) and not rough_depth([depth], [opacity])
+    sim = (np.where(disc, 0.8, 0.7) + rng.normal(0.0, 0.01, (n, n))).astype(np.float32)
+    seeds = _disc(n, n, 256, 256, 20)
+    region = region_similarity(sim, seeds, depth, opacity) > 0.5
+    assert _iou(region, disc) > 0.95, _iou(region, disc)
+
+
+def test_pooled_edges_keep_a_one_pixel_line_wherever_it_falls():
+    """A 1-px edge line at any column of a 500-px map walls every row of the 128-px barrier (nearest sampling
+    keeps one column in four and misses most of them)."""
+    from repaint_nerf.core.select.autothreshold import pooled_edges
+
+    for x in range(100, 120):
+        e = np.zeros((500, 500), bool)
+        e[:, x] = True
+        b = pooled_edges(e, (128, 128))
+        assert b.any(axis=1).all(), x
+        assert b.sum() <= 2 * 128, x
+
+
+def _depth_edges_reference(depth: np.ndarray, opacity: np.ndarray, rel: float) -> np.ndarray:
+    """depth_edges as first written: float64, np.roll per side, the rolled-in border lines cleared."""
+    from repaint_nerf.core.select.geometry import MIN_OPACITY
+
+    z = np.asarray(depth, np.float64)
+    surface = (opacity > MIN_OPACITY) & (z > 0)
+    w = np.where(surface, 1.0 / np.maximum(z, 1e-9), 0.0)
+    edge = np.zeros(w.shape, bool)
+    for axis in (0, 1):
+        for step in (1, -1):
+            near, far = np.roll(w, -step, axis), np.roll(w, step, axis)
+            e = (near - (2.0 * w - far) > rel * w) & (near - w > 0.5 * rel * w)
+            sl = [slice(None)] * 2
+            sl[axis] = slice(-1, None)
+            e[tuple(sl)] = False
+            sl[axis] = slice(0, 1)
+            e[tuple(sl)] = False
+            edge |= e
+    return edge | ~surface
+
+
+def _depth_noise_reference(depth: np.ndarray) -> float:
+    """depth_noise as first written, on every row and column (float64, every pixel a surface pixel)."""
+    w = 1.0 / np.asarray(depth, np.float64)
+    vals = [(np.abs(np.roll(w, -1, a) - 2.0 * w + np.roll(w, 1, a)) / w)[(slice(1, -1), slice(None)) if a == 0
+                                                                            else (slice(None), slice(1, -1))].ravel()
+            for a in (0, 1)]
+    return 1.4826 * float(np.median(np.concatenate(vals)))
+
+
+def test_depth_edges_and_noise_match_the_plain_reference():
+    """The sliced float32 depth_edges equals the rolled float64 one on noisy maps with steps and holes; depth_noise,
+    which reads every k-th line of a large map, stays within 5% of the full reading."""
+    from repaint_nerf.core.select.geometry import DEPTH_EDGE, depth_noise, inverse_depth
+
+    rng = np.random.default_rng(11)
+    for h, w in ((64, 64), (97, 131), (600, 340)):
+        steps = np.where(rng.random((h // 8 + 1, w // 8 + 1)) < 0.3, 1.5, 1.0)
+        z = (3.0 * np.kron(steps, np.ones((8, 8)))[:h, :w] * np.exp(rng.normal(0, 0.004, (h, w)))).astype(np.float32)
+        o = np.where(rng.random((h, w)) < 0.02, 0.0, 1.0).astype(np.float32)
+        np.testing.assert_array_equal(depth_edges(z, o), _depth_edges_reference(z, o, DEPTH_EDGE))
+        smooth = (3.0 * np.exp(rng.normal(0, 0.004, (h, w)))).astype(np.float32)
+        got, ref = depth_noise(*inverse_depth(smooth)), _depth_noise_reference(smooth)
+        assert abs(got - ref) < 0.05 * ref, (h, w, got, ref)

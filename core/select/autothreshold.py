@@ -384,15 +384,21 @@ def fill_level_holes(levels: np.ndarray) -> np.ndarray:
 def _query_maps(similarity, seeds: np.ndarray, depth, opacity, max_side: int, edges: bool
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """(similarity, seeds, barrier, surface) of a query in one view at most `max_side` px on a side: the barrier is
-    the view's depth edges when `edges` and its depth is smooth enough to show them, else its empty pixels."""
+    the view's depth edges when `edges` and its depth is smooth enough to show them, else its empty pixels.
+    A view whose depth is smooth at its own size but rough once downsampled takes its edges at its own size,
+    pooled (`pooled_edges`), as the masks find them there (`geometry.fit_parts` judges the views' own size): a
+    real capture's wall reads bumpy at 128 px (fox, 781-px view: noise 0.014 at 128 px, 0.0024 at its own size),
+    and without a barrier the region of a patch on the fox leaked over the wallpaper."""
     from repaint_nerf.core.select.geometry import MIN_OPACITY, depth_edges, rough_depth
 
     s = np.asarray(similarity.cpu() if hasattr(similarity, "cpu") else similarity, np.float32)
     seeds = np.asarray(seeds, bool)
-    z = None if depth is None else np.asarray(depth.cpu() if hasattr(depth, "cpu") else depth, np.float32)
-    o = None if opacity is None else np.asarray(opacity.cpu() if hasattr(opacity, "cpu") else opacity, np.float32)
+    z = z_full = None if depth is None else np.asarray(depth.cpu() if hasattr(depth, "cpu") else depth, np.float32)
+    o = o_full = None if opacity is None else np.asarray(opacity.cpu() if hasattr(opacity, "cpu") else opacity,
+                                                         np.float32)
     h, w = s.shape
     f = max_side / float(max(h, w))
+    size = (w, h)
     if f < 1.0:
         size = (max(1, int(round(w * f))), max(1, int(round(h * f))))
         s = cv2.resize(s, size, interpolation=cv2.INTER_AREA)
@@ -403,11 +409,15 @@ def _query_maps(similarity, seeds: np.ndarray, depth, opacity, max_side: int, ed
         seeds = small
         z = None if z is None else cv2.resize(z, size, interpolation=cv2.INTER_NEAREST)
         o = None if o is None else cv2.resize(o, size, interpolation=cv2.INTER_NEAREST)
-    if z is not None and edges and not rough_depth([z], [o]):
-        barrier = depth_edges(z, o)
-    elif o is not None:
+    barrier = None
+    if z is not None and edges:
+        if not rough_depth([z], [o]):
+            barrier = depth_edges(z, o)
+        elif f < 1.0 and not rough_depth([z_full], [o_full]):
+            barrier = pooled_edges(depth_edges(z_full, o_full), size)
+    if barrier is None and o is not None:
         barrier = o <= MIN_OPACITY
-    else:
+    elif barrier is None:
         barrier = None if z is None else ~(z > 0)
     if o is not None:
         surface = o > MIN_OPACITY
@@ -415,6 +425,16 @@ def _query_maps(similarity, seeds: np.ndarray, depth, opacity, max_side: int, ed
         surface = None if z is None else z > 0
     return s, seeds, barrier, surface
 
+
+def pooled_edges(edges: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A barrier (bool (H, W)) at `size` (W, H) from edge pixels at a larger size: a pixel is a barrier where its
+    block holds half a line's worth of edge pixels (a share 1 / (2 k) for blocks of side k), so that a 1-px edge
+    line that straddles two blocks still walls one of them: nearest sampling keeps only every k-th pixel of a
+    line and lets the region through the gaps."""
+    e = np.asarray(edges, bool)
+    k = max(e.shape[0] / float(size[1]), e.shape[1] / float(size[0]))
+    share = cv2.resize(e.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return share >= 0.5 / k - 1e-6
 
 def selection_auto_threshold(selection, cache, view: int) -> float:
     """The automatic threshold of a selection's positive patches drawn in training view `view` (their union seeds
