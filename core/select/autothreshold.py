@@ -436,6 +436,7 @@ def pooled_edges(edges: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     share = cv2.resize(e.astype(np.float32), size, interpolation=cv2.INTER_AREA)
     return share >= 0.5 / k - 1e-6
 
+
 def selection_auto_threshold(selection, cache, view: int) -> float:
     """The automatic threshold of a selection's positive patches drawn in training view `view` (their union seeds
     the region; `cache`: the training views' `masks.ViewCache`; the region stops at `ViewMaps.edge_depth`'s edges).
