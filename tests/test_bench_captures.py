@@ -184,6 +184,29 @@ def test_a_capture_scores_every_pixel_only_at_the_report_times(tmp_path):
     assert (res["scene"]["kind"], forced["scene"]["kind"]) == ("forward", "unbounded")  # as train --kind
 
 
+def test_as_train_measures_what_the_train_command_trains_and_leaves_no_workspace(tmp_path, monkeypatch):
+    """bench recon trains colour alone by default, as nerfacto does; --as-train adds the train command's teacher
+    features and depth priors, computed in a temporary workspace that is gone afterwards."""
+    import tempfile
+
+    from repaint_nerf.core.bench.recon import measure
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    write_llff(tmp_path / "s", _forward_poses(9), h=12, w=16, focal=14.0, bounds=np.tile([2.0, 6.0], (9, 1)))
+    kw = dict(evals=1, report_at=(0.5,), minute_curve=False, profile_steps=1)
+    colour = measure(tmp_path / "s", 0.5, **kw)
+    assert colour["trains"].startswith("colour alone")
+    res = measure(tmp_path / "s", 0.5, as_train=True, **kw)
+    trains = res["trains"]
+    assert trains["as"].startswith("the train command") and trains["feature_dim"] > 0, trains
+    assert trains["features"] != "the default teacher" and trains["depth_priors_s"] >= 0
+    assert trains["depth_priors"] in (None, "triangulated from the known poses")  # an LLFF scene has no SfM points
+    assert trains["depth_priors"] is not None or any("depth" in n for n in trains["notes"])
+    assert not any(scratch.iterdir()), list(scratch.iterdir())
+
+
 # ------------------------------------------------------------------ the nerfacto harness (no nerfstudio needed)
 
 

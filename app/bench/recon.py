@@ -34,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=None)
     p.add_argument("--distortion", type=float, default=None, metavar="W",
                    help="distortion loss weight, as train --distortion (default: the trainer's)")
+    p.add_argument("--as-train", action="store_true",
+                   help="train what the train command trains: colour plus the default teacher's features and depth "
+                        "priors (default: colour alone, as nerfacto and instant-ngp)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--profile-steps", type=int, default=8, help="extra profiled steps for the breakdown")
     p.add_argument("--json", required=True, help="output JSON path")
@@ -106,7 +109,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         result = measure(scene_path, args.seconds, args.evals, args.eval_views, args.rays, args.lr, args.seed,
                          args.profile_steps, args.downscale, args.device, progress, args.holdout_every, report_at,
-                         not args.no_minute_curve, kind=args.kind, distortion=args.distortion)
+                         not args.no_minute_curve, kind=args.kind, distortion=args.distortion,
+                         as_train=args.as_train)
         result["scene"].update(generated=tmp is not None, preset=None if args.scene else args.preset)
         out = Path(args.json)
         atomic.write_json(out, result)
@@ -119,6 +123,10 @@ def run(args: argparse.Namespace) -> int:
     ev = result["evaluation"]
     print(f"held out: {result['scene']['test_views']} {ev['split']} views ({(ev['holdout'] or {}).get('rule')}); "
           f"{result['scene']['train_views']} trained on; appearance: {ev['appearance']}")
+    trains = result["trains"]
+    print("trains: " + (trains if isinstance(trains, str) else
+                        f"{trains['as']}; features of {trains['features']}, depth priors: "
+                        f"{trains['depth_priors'] or 'none'} ({trains['depth_priors_s']:.1f} s before training)"))
     for t, pt in result["at"].items():
         print(f"at {t} s: " + ("beyond the budget" if pt is None else
                                f"test PSNR {pt['psnr']:.2f} dB, SSIM {pt['ssim']:.4f} (step {pt['step']})"))

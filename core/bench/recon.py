@@ -200,18 +200,17 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
             downscale: float = 1.0, device: str | None = None,
             progress: Callable[[dict], None] | None = None, holdout_every: int | None = None,
             report_at=REPORT_AT, minute_curve: bool = True, bounded_curve: bool | None = None,
-            kind: str | None = None, distortion: float | None = None) -> dict:
+            kind: str | None = None, distortion: float | None = None, as_train: bool = False) -> dict:
     """Train stage 1 from scratch on a scene for `seconds` with test evaluations along the way (`evals` evenly
     spaced, the first-minute curve, and PSNR with SSIM at each `report_at` time); the result dict holds the curve,
     the figures at the report times, final PSNR/SSIM, render figures, the breakdown and the nerfacto reference
     (with its ratios, labelled as figures measured elsewhere). A capture without its own test split holds out
     every `holdout_every`-th view (default 8). `progress(point)` gets each curve point. `kind` overrides the
-    detected scene kind."""
-    import torch
-
-    from repaint_nerf.core.device import describe
+    detected scene kind. By default the field learns colour alone, as nerfacto and instant-ngp train; `as_train`
+    adds what the `train` command distils besides (paper Eq. s1): the default teacher's features, arriving on a
+    background thread while colour trains, and the depth priors (`train_teachers`)."""
     from repaint_nerf.core.scene.loaders.detect import load_scene
-    from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig, check_distortion_weight
+    from repaint_nerf.core.train.stage1 import TrainConfig, check_distortion_weight
 
     cfg = TrainConfig(seed=seed)
     if distortion is not None:  # before the scene loads: a bad weight fails at once
@@ -223,7 +222,52 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
         cfg.rays_per_batch = rays
     if lr:
         cfg.lr = lr
-    trainer = Stage1Trainer(scene, None, cfg, device=device)
+    teachers = train_teachers(scene) if as_train else None
+    try:
+        return _measure(scene, scene_path, cfg, teachers, seconds, evals, eval_views, profile_steps, device, progress,
+                        report_at, minute_curve, bounded_curve)
+    finally:
+        if teachers is not None:
+            stop = getattr(teachers["features"], "stop", None)  # a stream still writing into the workspace about to go
+            if stop is not None:
+                stop()
+            teachers["dir"].cleanup()
+
+
+def train_teachers(scene) -> dict:
+    """The `train` command's teachers for `scene` in a fresh temporary workspace, as a first `train` computes them:
+    the depth priors, with the seconds they took (the command spends them before training; they are not training
+    seconds), then the feature stream, whose teacher runs on its own thread while the trainer consumes its codes."""
+    import tempfile
+
+    from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_stream
+    from repaint_nerf.core.workspace.workspace import Workspace
+
+    tmp = tempfile.TemporaryDirectory(prefix="repaint-nerf-bench-ws-")
+    ws = Workspace.open_or_create(Path(tmp.name) / "ws")
+    notes: list[str] = []
+    t0 = time.perf_counter()
+    depth = depth_priors(scene, ws, notes)
+    depth_s = time.perf_counter() - t0
+    features = feature_stream(scene, ws, FEATURE_DIMS, notes=notes)
+    what = {"features": str(ws.settings.get("teacher") or "the default teacher"),
+            "depth_priors": None if depth is None else ("SfM points" if scene.points is not None and len(scene.points)
+                                                         else "triangulated from the known poses"),
+            "depth_priors_s": round(depth_s, 2), "notes": notes}
+    return {"dir": tmp, "features": features, "depth": depth, "what": what}
+
+
+def _measure(scene, scene_path: Path, cfg, teachers: dict | None, seconds: float, evals: int, eval_views: int | None,
+             profile_steps: int, device, progress, report_at, minute_curve: bool, bounded_curve: bool) -> dict:
+    """`measure`'s run on a loaded scene (its trainer built with `teachers`, from `train_teachers`, when given)."""
+    import torch
+
+    from repaint_nerf.core.device import describe
+    from repaint_nerf.core.train.stage1 import Stage1Trainer
+
+    trainer = Stage1Trainer(scene, None, cfg, device=device,
+                            feature_targets=None if teachers is None else teachers["features"],
+                            depth_priors=None if teachers is None else teachers["depth"])
     trainer.plan(seconds=seconds)
     # Every pixel of the first eval views, as the figures in earlier notes were measured (training's own
     # evaluation is the bounded one; the curve's time excludes evaluation either way).
@@ -264,6 +308,9 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
         "device": describe(trainer.device),
         "train_config": {"rays_per_batch": cfg.rays_per_batch, "lr": cfg.lr, "schedule": cfg.schedule,
                          "lambda_distortion": trainer.cfg.lambda_distortion, "seconds": seconds},
+        "trains": ("colour alone (as nerfacto and instant-ngp)" if teachers is None else
+                   {"as": "the train command: colour, teacher features and depth priors (paper Eq. s1)",
+                    **teachers["what"], "feature_dim": int(getattr(trainer.field_cfg, "feature_dim", 0))}),
         "curve": curve,
         "at": at_times(curve, report_at),
         "minute_curve": [p for p in curve if p.get("target") in {float(t) for t in MINUTE_CURVE}],
