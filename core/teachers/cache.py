@@ -126,8 +126,8 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
             flat = feats.reshape(-1, feats.shape[-1])
             pick = rng.choice(flat.shape[0], size=min(samples_per_image, flat.shape[0]), replace=False)
             samples.append(flat[pick])
-            if not files[i].exists():  # kept until encoded below, as float16: 16 fox images' 216-channel features
-                computed[i] = feats.astype(np.float16)  # at 288x512 held 2.0 GB as float32 (the codes are float16)
+            if not files[i].exists():  # kept until encoded below, as float16 (every teacher's features are unit
+                computed[i] = feats.astype(np.float16)  # vectors): 16 fox images' 216 channels held 2.0 GB as float32
             tick()
         codec = PCACodec.fit(np.concatenate(samples, 0), k=dims, seed=seed)
         write_sealed(basis_file, save(codec.to_arrays(), metadata=sealed_metadata({"version": str(FORMAT_VERSION),
