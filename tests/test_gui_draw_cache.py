@@ -136,3 +136,68 @@ def test_new_glyphs_reach_the_gpu_when_the_cached_panel_is_first(window):
     for _ in range(2):
         drawn = frame("Wq 7&", False)
     np.testing.assert_array_equal(shown, drawn)
+
+
+def _lines_frame(window, lines: list[str], cached: bool, picture):
+    """A frame whose panel holds `lines` of text, then a button and a slider, over the picture."""
+    from imgui_bundle import imgui
+
+    window.begin_frame()
+    imgui.set_next_window_pos(imgui.ImVec2(*PANEL[:2]))
+    imgui.set_next_window_size(imgui.ImVec2(*PANEL[2:]))
+    imgui.begin("Panel", None, imgui.WindowFlags_.no_move | imgui.WindowFlags_.no_resize)
+    panel = imgui.get_window_draw_list()
+    for line in lines:
+        imgui.text(line)
+    imgui.button("a button")
+    imgui.slider_float("value", 0.25, 0.0, 1.0)
+    imgui.end()
+    return window.end_frame(capture=True, underlay=(picture, PICTURE), cached=(panel, PANEL) if cached else None)
+
+
+@pytest.mark.parametrize("change", [
+    {1: "step 1002"},  # digits changed in place
+    {1: "step 10020", 6: "loss 0.0410"},  # two lines apart, one longer: what follows it moves in the buffers
+    {0: "Training: paused"},  # the first line, so every triangle after it sits elsewhere in the buffers
+])
+def test_a_few_changed_lines_are_redrawn_alone_and_look_as_the_full_draw(window, change):
+    """A panel whose status lines changed is rasterized again only in the rects the changed text covers (the rest
+    of the cached pixels stay), and the screen is the one a full draw of the new panel gives, pixel for pixel."""
+    picture = _picture(window.ctx)
+    lines = ["Training: running", "step 1001", "PSNR 24.31 dB", "steps/s 5.6", "render 41 ms", "scale 0.50",
+             "loss 0.0412", "a line that does not change"]
+    new = [change.get(i, line) for i, line in enumerate(lines)]
+    for _ in range(3):
+        _lines_frame(window, lines, True, picture)
+    cache = window._window_cache
+    partial, redraws = cache.partial_redraws, cache.redraws
+    shown = _lines_frame(window, new, True, picture)
+    assert cache.redraws == redraws + 1 and cache.partial_redraws == partial + 1, "the panel was redrawn in part"
+    assert 0.0 < cache.damaged < 0.15 * len(change), "only the changed lines' rects were rasterized"
+    for _ in range(3):
+        drawn = _lines_frame(window, new, False, picture)
+    np.testing.assert_array_equal(shown, drawn)
+    back = _lines_frame(window, lines, True, picture)  # and back: the old text again, in part
+    for _ in range(3):
+        full = _lines_frame(window, lines, False, picture)
+    np.testing.assert_array_equal(back, full)
+
+
+def test_changed_triangles_are_found_wherever_they_sit_in_the_buffers():
+    """`_changed` finds the triangles that differ between two lists: one changed in place, and a longer middle
+    with the rows after it shifted."""
+    from repaint_nerf.app.window import _changed
+
+    rng = np.random.default_rng(0)
+    old = rng.integers(0, 2 ** 32, (50, 20), dtype=np.uint64).astype(np.uint32)
+    new = old.copy()
+    new[[7, 30]] += 1
+    a, b = _changed(old, new)
+    np.testing.assert_array_equal(a, old[[7, 30]])
+    np.testing.assert_array_equal(b, new[[7, 30]])
+    longer = np.concatenate([old[:10], rng.integers(0, 2 ** 32, (3, 20), dtype=np.uint64).astype(np.uint32),
+                             old[10:]])
+    a, b = _changed(old, longer)
+    assert len(a) == 0 and np.array_equal(b, longer[10:13])
+    a, b = _changed(old, old)
+    assert len(a) == 0 and len(b) == 0
