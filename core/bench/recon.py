@@ -235,9 +235,10 @@ def measure(scene_path: Path, seconds: float, evals: int = 12, eval_views: int |
 
 
 def train_teachers(scene) -> dict:
-    """The `train` command's teachers for `scene` in a fresh temporary workspace, as a first `train` computes them:
-    the depth priors, with the seconds they took (the command spends them before training; they are not training
-    seconds), then the feature stream, whose teacher runs on its own thread while the trainer consumes its codes."""
+    """The `train` command's teachers for `scene` in a fresh temporary workspace, in the order a first `train`
+    computes them (session.py): the feature stream first, whose teacher runs on its own thread while the trainer
+    consumes its codes, then the depth priors beside it, with the seconds they took (the command spends them before
+    training; they are not training seconds, and the teacher's thread has that head start there too)."""
     import tempfile
 
     from repaint_nerf.core.teachers.stage1_targets import FEATURE_DIMS, depth_priors, feature_stream
@@ -246,10 +247,14 @@ def train_teachers(scene) -> dict:
     tmp = tempfile.TemporaryDirectory(prefix="repaint-nerf-bench-ws-")
     ws = Workspace.open_or_create(Path(tmp.name) / "ws")
     notes: list[str] = []
-    t0 = time.perf_counter()
-    depth = depth_priors(scene, ws, notes)
-    depth_s = time.perf_counter() - t0
     features = feature_stream(scene, ws, FEATURE_DIMS, notes=notes)
+    t0 = time.perf_counter()
+    try:
+        depth = depth_priors(scene, ws, notes)
+    except BaseException:
+        features.stop()  # the teacher's thread must not outlive a failed setup
+        raise
+    depth_s = time.perf_counter() - t0
     what = {"features": str(ws.settings.get("teacher") or "the default teacher"),
             "depth_priors": None if depth is None else ("SfM points" if scene.points is not None and len(scene.points)
                                                          else "triangulated from the known poses"),
