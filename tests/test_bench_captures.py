@@ -257,7 +257,7 @@ def test_captures_table_puts_both_methods_side_by_side_and_docs_render_it(tmp_pa
     assert fox["ours"]["samples_per_ray"] == 43.1 and fox["nerfacto"]["longest"]["psnr"] == 18.5
     assert table["captures"]["fern"]["nerfacto"] is None
     text = SECTIONS["captures"][1](table)
-    assert "| fox | ours | 20.40 |" in text and "18.50 at 1790 s" in text and text.count("| fern |") == 1
+    assert "| fox | ours, colour alone | 20.40 |" in text and "18.50 at 1790 s" in text and text.count("| fern |") == 1
     assert main(["bench", "captures", "--table", "fox"]) != 0
     assert "NAME=OURS.json" in capsys.readouterr().err
     # --update replaces the rows given and keeps the others (a capture measured on another day)
@@ -266,11 +266,16 @@ def test_captures_table_puts_both_methods_side_by_side_and_docs_render_it(tmp_pa
     updated = json.loads(out.read_text())
     assert updated["captures"]["fox"] == fox and updated["captures"]["fern"]["nerfacto"]["longest"]["psnr"] == 18.5
     # our side re-measured alone (a speed-up) keeps nerfacto's row; without --update a row has none
-    faster = {**ours, "at": {"60": {"psnr": 23.1, "ssim": 0.7, "step": 700, "seconds": 60.0}}, "steps_per_s": 11.0}
+    faster = {**ours, "at": {"60": {"psnr": 23.1, "ssim": 0.7, "step": 700, "seconds": 60.0}}, "steps_per_s": 11.0,
+              "trains": {"as": "the train command: colour, teacher features and depth priors (paper Eq. s1)"}}
     (tmp_path / "o2.json").write_text(json.dumps(faster))
     assert main(["bench", "captures", "--table", f"fox={tmp_path / 'o2.json'}", "--update", "--json", str(out)]) == 0
     again = json.loads(out.read_text())["captures"]
-    assert again["fox"]["ours"]["steps_per_s"] == 11.0 and again["fox"]["nerfacto"] == fox["nerfacto"]
+    # an --as-train run (what `train` trains) gets its own row beside the colour-alone one, which it keeps
+    assert again["fox"]["ours_as_train"]["steps_per_s"] == 11.0 and again["fox"]["ours"] == fox["ours"]
+    assert again["fox"]["nerfacto"] == fox["nerfacto"]
+    shown = SECTIONS["captures"][1](json.loads(out.read_text()))
+    assert "| fox | ours, as train | 23.10 |" in shown and "| fox | ours, colour alone | 20.40 |" in shown
     assert again["fern"] == updated["captures"]["fern"]
     assert main(["bench", "captures", "--table", f"fern={tmp_path / 'o.json'}", "--update", "--json",
                  str(tmp_path / "none.json")]) != 0

@@ -22,7 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--update", action="store_true",
                    help="with --table and --json: replace only the captures given, keeping the other rows of the "
                         "existing table (each row keeps its own date and command); a capture given with OURS.json "
-                        "alone keeps its nerfacto row")
+                        "alone keeps its nerfacto row, and a colour-alone run keeps the --as-train one (and the "
+                        "other way round)")
     p.add_argument("--from", dest="source", default=None,
                    help="the fetched snapshot's git directory (e.g. /work/.mirror/OWNER+NAME/repo) or a plain folder")
     p.add_argument("--dest", default=None, help=f"folder that receives NAME/ (default {default_root()})")
@@ -44,7 +45,7 @@ def _factors(text: str) -> tuple[int, ...]:
 def _table(args: argparse.Namespace) -> int:
     import json
 
-    from repaint_nerf.core.bench.captures import side_by_side
+    from repaint_nerf.core.bench.captures import METHODS, side_by_side
     from repaint_nerf.core.errors import UserError
 
     rows, firsts = {}, []
@@ -71,9 +72,10 @@ def _table(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UserError(f"{args.json} is not a table bench captures wrote ({exc})") from None
         devices = sorted(set(devices) | {d for d in str(old.get("device", "")).split(", ") if d and d != "?"})
-        for name, row in rows.items():  # our side alone re-measured (a speed-up): nerfacto's 30-minute run stands
-            if row["nerfacto"] is None:
-                row["nerfacto"] = (old.get("captures", {}).get(name) or {}).get("nerfacto")
+        for name, row in rows.items():  # one method re-measured (a speed-up): the others' runs stand
+            for method in METHODS:
+                if row.get(method) is None:
+                    row[method] = (old.get("captures", {}).get(name) or {}).get(method)
     table = {"machine": args.machine or old.get("machine", ""), "device": ", ".join(devices) or "?",
              "report_at": ["60", "120", "300"], "captures": {**old.get("captures", {}), **rows}}
     text = json.dumps(table, indent=1)

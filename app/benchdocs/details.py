@@ -80,15 +80,21 @@ def _scale(d: dict) -> str:
                      "steps/s", "samples per ray", "full-view render (ms)", "final PSNR (dB)", "peak RSS (MB)"), rows))
 
 
+METHOD_LABELS = {"ours": "ours, colour alone", "ours_as_train": "ours, as train"}  # what bench recon trained
+
+
 def _captures(d: dict) -> str:
+    from repaint_nerf.core.bench.captures import METHODS
+
     times = d.get("report_at", ["60", "120", "300"])
     rows = []
     for name, c in d["captures"].items():
-        for method in ("ours", "nerfacto"):
+        for method in METHODS:
             r = c.get(method)
             if not r:
                 continue
-            rows.append((name, method, *(num((r["at"].get(t) or {}).get("psnr")) for t in times),
+            psnr = (num((r["at"].get(t) or {}).get("psnr")) for t in times)
+            rows.append((name, METHOD_LABELS.get(method, method), *psnr,
                          num(r.get("longest", {}).get("psnr")) + (f" at {r['longest']['seconds']:.0f} s"
                                                                   if r.get("longest") else ""),
                          num(r.get("samples_per_ray"), 1), num(r.get("steps_per_s"), 2)))

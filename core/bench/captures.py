@@ -66,20 +66,30 @@ def find_capture(name: str, registry: tuple[Capture, ...] = CAPTURES) -> Capture
 
 def _method_row(d: dict) -> dict:
     """One method's figures from its bench JSON (bench recon or bench nerfacto): PSNR/SSIM at the report times,
-    the longest run's last scored point, samples per ray and steps per second."""
+    the longest run's last scored point, samples per ray, steps per second, and what bench recon trained."""
     at = {k: (None if v is None else {"psnr": v.get("psnr"), "ssim": v.get("ssim"), "step": v.get("step"),
                                       "seconds": v.get("seconds")}) for k, v in (d.get("at") or {}).items()}
     scored = [v for v in at.values() if v and v.get("psnr") is not None]
     longest = max(scored, key=lambda v: v["seconds"] or 0.0, default=None)
     spr = d.get("samples_per_ray")
+    trains = d.get("trains")  # bench recon: "colour alone ..." or, with --as-train, {"as": "the train command ..."}
     return {"at": at, "longest": longest, "steps_per_s": d.get("steps_per_s"),
+            "trains": trains.get("as") if isinstance(trains, dict) else trains,
             "samples_per_ray": spr.get("with_grid") if isinstance(spr, dict) else spr,
             "measured": d.get("measured"), "command": d.get("command")}
 
 
+METHODS = ("ours", "ours_as_train", "nerfacto")  # a row's methods, in the table's order
+
+
 def side_by_side(ours: dict, nerfacto: dict | None) -> dict:
     """A capture's row of the side-by-side table: this project's bench recon JSON and nerfstudio's (bench
-    nerfacto), each reduced to the figures issue 32 compares, plus the capture's size and views."""
+    nerfacto), each reduced to the figures issue 32 compares, plus the capture's size and views. A recon run
+    with --as-train (what the `train` command trains) fills `ours_as_train`, a colour-alone one (as nerfacto
+    trains) `ours`; the other stays None."""
     scene = ours.get("scene", {})
-    return {"scene": {k: scene.get(k) for k in ("name", "kind", "size", "train_views", "test_views")},
-            "ours": _method_row(ours), "nerfacto": None if nerfacto is None else _method_row(nerfacto)}
+    key = "ours_as_train" if isinstance(ours.get("trains"), dict) else "ours"
+    row = {"scene": {k: scene.get(k) for k in ("name", "kind", "size", "train_views", "test_views")},
+           **{m: None for m in METHODS}, "nerfacto": None if nerfacto is None else _method_row(nerfacto)}
+    row[key] = _method_row(ours)
+    return row
