@@ -393,16 +393,14 @@ def _damage(old: np.ndarray | None, new: np.ndarray | None, draw_data, fb_height
     pos = rows[:, :15].reshape(-1, 3, 5)[:, :, :2].copy().view(np.float32).reshape(-1, 3, 2)
     lo = np.floor((pos.min(1) - [ox, oy]) * [sx, sy]) - 1  # a pixel's margin for the antialiased fringe
     hi = np.ceil((pos.max(1) - [ox, oy]) * [sx, sy]) + 1
-    order = np.argsort(lo[:, 1], kind="stable")
-    bands: list[list[float]] = []
-    for i in order:  # triangles by their top: a band grows while the next one starts within it
-        if bands and lo[i, 1] <= bands[-1][3]:
-            band = bands[-1]
-            band[0], band[2], band[3] = min(band[0], lo[i, 0]), max(band[2], hi[i, 0]), max(band[3], hi[i, 1])
-        else:
-            bands.append([lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]])
-    if len(bands) > MAX_DAMAGE_RECTS:
-        bands = [[min(b[0] for b in bands), bands[0][1], max(b[2] for b in bands), max(b[3] for b in bands)]]
+    order = np.argsort(lo[:, 1], kind="stable")  # triangles by their top: a band ends where the next one starts
+    lo, hi = lo[order], hi[order]  # below every triangle before it (a plot's thousands of triangles: no loop)
+    bottom = np.maximum.accumulate(hi[:, 1])
+    starts = np.concatenate([[0], np.nonzero(lo[1:, 1] > bottom[:-1])[0] + 1])
+    if len(starts) > MAX_DAMAGE_RECTS:
+        starts = starts[:1]
+    bands = np.stack([np.minimum.reduceat(lo[:, 0], starts), lo[starts, 1], np.maximum.reduceat(hi[:, 0], starts),
+                      np.maximum.reduceat(hi[:, 1], starts)], 1).tolist()
     x0, y0, w, h = rect  # the window in framebuffer pixels, GL origin
     top = fb_height - (y0 + h)  # its top row from the top
     out, area = [], 0

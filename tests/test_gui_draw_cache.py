@@ -201,3 +201,46 @@ def test_changed_triangles_are_found_wherever_they_sit_in_the_buffers():
     assert len(a) == 0 and np.array_equal(b, longer[10:13])
     a, b = _changed(old, old)
     assert len(a) == 0 and len(b) == 0
+
+
+def _tri_rows(boxes, clip=(0.0, 0.0, 640.0, 400.0)) -> np.ndarray:
+    """Triangle rows as `window._triangles` makes them, one triangle per (x0, y0, x1, y1) box (its corners)."""
+    rows = []
+    for i, (x0, y0, x1, y1) in enumerate(boxes):
+        verts = np.zeros((3, 5), np.float32)
+        verts[:, :2] = [(x0, y0), (x1, y0), (x1, y1)]
+        verts[:, 2] = i  # a texture coordinate that tells the triangles apart
+        rows.append(np.concatenate([verts.reshape(-1).view(np.uint32),
+                                    np.array(clip, np.float32).view(np.uint32), [np.uint32(1)]]))
+    return np.array(rows, np.uint32)
+
+
+def test_damage_bands_follow_the_changed_triangles():
+    """`_damage` groups the changed triangles into bands down the window (with a pixel's margin), one rect over
+    them all past MAX_DAMAGE_RECTS, and a full redraw where the clip rects leave the pixel grid or the change covers
+    most of the window."""
+    from types import SimpleNamespace
+
+    from repaint_nerf.app.window import MAX_DAMAGE_RECTS, _damage
+
+    dd = SimpleNamespace(framebuffer_scale=SimpleNamespace(x=1.0, y=1.0), display_pos=SimpleNamespace(x=0.0, y=0.0))
+    rect = (440, 0, 200, 400)  # GL origin, the window's full height
+    lines = [(450.0, 10.0 + 20 * k, 600.0, 24.0 + 20 * k) for k in range(12)]
+    old = _tri_rows(lines)
+
+    def changed(ks):
+        boxes = [(x0 + 5, y0, x1 + 5, y1) if k in ks else (x0, y0, x1, y1) for k, (x0, y0, x1, y1) in enumerate(lines)]
+        return _tri_rows(boxes)
+
+    assert _damage(old, old, dd, 400, rect) == []
+    one = _damage(old, changed({2}), dd, 400, rect)
+    assert one == [((449, 400 - 65, 157, 16), (449.0, 49.0, 606.0, 65.0))]  # the old and the new place, a px around
+    two = _damage(old, changed({2, 9}), dd, 400, rect)
+    assert [r[1][1] for r in two] == [49.0, 189.0]
+    many = _damage(old, changed(set(range(0, 12, 2))), dd, 400, rect)  # 6 lines apart
+    assert MAX_DAMAGE_RECTS < 6 and len(many) == 1 and many[0][1][1] == 9.0 and many[0][1][3] == 225.0
+    off_grid = _tri_rows(lines, clip=(0.5, 0.0, 640.0, 400.0))
+    assert _damage(off_grid, _tri_rows([(x0 + 5, y0, x1, y1) for x0, y0, x1, y1 in lines], (0.5, 0.0, 640.0, 400.0)),
+                   dd, 400, rect) is None
+    big = [(445.0, 5.0, 635.0, 395.0)]
+    assert _damage(_tri_rows(big), _tri_rows([(446.0, 5.0, 635.0, 395.0)]), dd, 400, rect) is None
