@@ -280,7 +280,7 @@ class _WindowCache:
         signature = (rect, size, content)
         if signature == self.signature and self.texture is not None:
             return
-        triangles = _triangles(*content)
+        triangles = _triangles(*content, _index_dtype(draw_list))
         damage = None
         if self.texture is not None and self.texture.size == size and self.rect == rect:
             damage = _damage(self.triangles, triangles, draw_data, size[1], rect)
@@ -328,22 +328,26 @@ def _draw_list_bytes(draw_list) -> tuple:
     cmds = tuple(((c.clip_rect.x, c.clip_rect.y, c.clip_rect.z, c.clip_rect.w), c.tex_ref._tex_id, c.elem_count,
                   c.idx_offset, c.vtx_offset)  # the texture by id: one the backend has not made yet has none
                  for c in (draw_list.cmd_buffer[i] for i in range(draw_list.cmd_buffer.size())))
-    idx_bytes = 4 if type(idx).__name__ == "ImVector_uint" else 2  # ImDrawIdx as imgui_bundle compiles it
     return (ctypes.string_at(vtx.data_address(), vtx.size() * _DRAW_VERT_BYTES),
-            ctypes.string_at(idx.data_address(), idx.size() * idx_bytes), cmds)
+            ctypes.string_at(idx.data_address(), idx.size() * np.dtype(_index_dtype(draw_list)).itemsize), cmds)
+
+
+def _index_dtype(draw_list) -> type:
+    """ImDrawIdx as imgui_bundle compiles it: 32-bit where the index vector is an ImVector_uint, else 16-bit."""
+    return np.uint32 if type(draw_list.idx_buffer).__name__ == "ImVector_uint" else np.uint16
 
 
 MAX_DAMAGE_RECTS = 4  # more separate changes than this redraw the window's bounding rect of them all
 _TRI_WORDS = 3 * _DRAW_VERT_BYTES // 4 + 5  # a triangle's three vertices, then its command's clip rect and texture
 
 
-def _triangles(vtx: bytes, idx: bytes, cmds: tuple) -> np.ndarray | None:
-    """Every triangle a draw list draws, in draw order, as a row of uint32 words (`_TRI_WORDS`): its three
-    vertices' bytes (position first), then its command's clip rect and texture. Rows compare equal exactly where
-    the triangle draws the same pixels, wherever it sits in the buffers. None for a list that is not plain
-    triangles (a command with no whole triangles)."""
+def _triangles(vtx: bytes, idx: bytes, cmds: tuple, index_dtype: type) -> np.ndarray | None:
+    """Every triangle a draw list draws (`_draw_list_bytes`; its indices of `index_dtype`), in draw order, as a
+    row of uint32 words (`_TRI_WORDS`): its three vertices' bytes (position first), then its command's clip rect
+    and texture. Rows compare equal exactly where the triangle draws the same pixels, wherever it sits in the
+    buffers. None for a list that is not plain triangles (a command with no whole triangles)."""
     verts = np.frombuffer(vtx, np.uint32).reshape(-1, _DRAW_VERT_BYTES // 4)
-    index = np.frombuffer(idx, np.uint32 if len(idx) and len(idx) == 4 * sum(c[2] for c in cmds) else np.uint16)
+    index = np.frombuffer(idx, index_dtype)
     rows = []
     for clip, tex, count, offset, vtx_offset in cmds:
         if count % 3:

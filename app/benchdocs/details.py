@@ -9,6 +9,7 @@ from typing import Callable
 from repaint_nerf.app.benchdocs import headline
 from repaint_nerf.app.benchdocs.sources import SOURCES, Measured
 from repaint_nerf.app.benchdocs.text import num, table
+from repaint_nerf.core.bench.captures import METHODS
 from repaint_nerf.core.bench.scale import TARGETS, goal_target, size_ratio
 
 TITLE = """# Benchmarks
@@ -84,8 +85,6 @@ METHOD_LABELS = {"ours": "ours, colour alone", "ours_as_train": "ours, as train"
 
 
 def _captures(d: dict) -> str:
-    from repaint_nerf.core.bench.captures import METHODS
-
     times = d.get("report_at", ["60", "120", "300"])
     rows = []
     for name, c in d["captures"].items():
