@@ -22,6 +22,7 @@ from safetensors.numpy import load_file, save
 from repaint_nerf.core.errors import WorkspaceError
 from repaint_nerf.core.teachers.base import FeatureTeacher, check_image
 from repaint_nerf.core.teachers.codec import PCACodec, sample_codes
+from repaint_nerf.core.teachers.projected import encode, prepared
 from repaint_nerf.core.workspace.atomic import write_sealed
 from repaint_nerf.core.workspace.integrity import IntegrityError, sealed_metadata, verify_file
 
@@ -122,12 +123,11 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
         rng = np.random.default_rng(seed)
         samples = []
         for i in fit_idx:
-            feats = teacher(check_image(images[i]))
-            flat = feats.reshape(-1, feats.shape[-1])
-            pick = rng.choice(flat.shape[0], size=min(samples_per_image, flat.shape[0]), replace=False)
-            samples.append(flat[pick])
-            if not files[i].exists():  # kept until encoded below, as float16 (every teacher's features are unit
-                computed[i] = feats.astype(np.float16)  # vectors): 16 fox images' 216 channels held 2.0 GB as float32
+            prep = prepared(teacher, images[i])
+            pixels = prep.size[0] * prep.size[1]
+            samples.append(prep.at(rng.choice(pixels, size=min(samples_per_image, pixels), replace=False)))
+            if not files[i].exists():  # kept until encoded below
+                computed[i] = prep
             tick()
         codec = PCACodec.fit(np.concatenate(samples, 0), k=dims, seed=seed)
         write_sealed(basis_file, save(codec.to_arrays(), metadata=sealed_metadata({"version": str(FORMAT_VERSION),
@@ -139,8 +139,7 @@ def build_feature_store(images: Sequence[np.ndarray], teacher: FeatureTeacher, f
         rgb = check_image(images[i])
         c = _load_codes(files[i])
         if c is None:
-            feats = computed.pop(i).astype(np.float32) if i in computed else teacher(rgb)
-            c = codec.encode(feats, scale=scale)
+            c = encode(codec, computed.pop(i) if i in computed else prepared(teacher, rgb), scale=scale)
             write_sealed(files[i], save({"codes": c}, metadata=sealed_metadata({
                 "version": str(FORMAT_VERSION), "height": str(rgb.shape[0]), "width": str(rgb.shape[1])})))
         codes[i] = torch.from_numpy(np.ascontiguousarray(c))

@@ -53,10 +53,15 @@ class PCACodec:
     def encode(self, features: np.ndarray, scale: float = 1.0) -> np.ndarray:
         """(H, W, D) float -> (h, w, K) float16 codes, h = round(H * scale) (area-averaged when < 1)."""
         f = np.asarray(features, dtype=np.float32)
+        return self.finish((f.reshape(-1, f.shape[-1]) @ self.basis).reshape(*f.shape[:2], self.dims), scale)
+
+    def finish(self, projected: np.ndarray, scale: float = 1.0) -> np.ndarray:
+        """Features already projected onto the basis, (H, W, K) float32 -> the codes `encode` makes: the mean's
+        projection taken off, area-averaged to `scale` (a linear map, so after the projection as well as before)."""
+        codes = projected - self.mean @ self.basis if np.any(self.mean) else projected
         if scale != 1.0:
-            f = _resize(f, code_size(f.shape[:2], scale), cv2.INTER_AREA)
-        codes = (f.reshape(-1, f.shape[-1]) - self.mean) @ self.basis
-        return codes.reshape(*f.shape[:2], self.dims).astype(np.float16)
+            codes = _resize(codes, code_size(codes.shape[:2], scale), cv2.INTER_AREA)
+        return codes.astype(np.float16)
 
     def decode(self, codes: np.ndarray) -> np.ndarray:
         """K-dim codes -> D-dim features (what the teacher's space looks like after compression)."""
@@ -107,8 +112,9 @@ def _resize(f: np.ndarray, size: tuple[int, int], interp: int) -> np.ndarray:
     h, w = size
     if f.shape[:2] == (h, w):
         return f.astype(np.float32, copy=False)
-    # cv2 handles at most 512 channels per call; teachers stay below that, but be safe
-    parts = [cv2.resize(np.ascontiguousarray(f[..., i:i + 256]), (w, h), interpolation=interp)
-             for i in range(0, f.shape[-1], 256)]
+    # cv2 handles at most 512 channels per call, and its area resize by a non-integer factor at most 4
+    step = 4 if interp == cv2.INTER_AREA else 256
+    parts = [cv2.resize(np.ascontiguousarray(f[..., i:i + step]), (w, h), interpolation=interp)
+             for i in range(0, f.shape[-1], step)]
     parts = [p[..., None] if p.ndim == 2 else p for p in parts]
     return np.concatenate(parts, axis=-1).astype(np.float32, copy=False)

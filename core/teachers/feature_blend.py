@@ -37,3 +37,10 @@ class BlendFeatureTeacher:
             np.multiply(f, np.float32(np.sqrt(w)), out=out[..., at:at + f.shape[2]])
             at += f.shape[2]
         return l2_normalize(out)  # a part's zero vector leaves the rest short of unit length
+
+    def prepare(self, image: np.ndarray):
+        """The features as the feature cache reads them (core.teachers.projected), each part prepared its way."""
+        from repaint_nerf.core.teachers.projected import Blended, prepared
+
+        rgb = check_image(image)
+        return Blended([(float(np.sqrt(w)), prepared(t, rgb)) for t, w in self.parts])

