@@ -1,7 +1,9 @@
 """Shared fixtures: a virtual display for GUI tests and small generated scenes (never committed)."""
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -10,6 +12,7 @@ import pytest
 os.environ.setdefault("REPAINT_NERF_DEVICE", "cpu")
 # The editor remembers per user which first-run hints were followed: tests never read or write the real ones.
 os.environ["REPAINT_NERF_CONFIG_DIR"] = tempfile.mkdtemp(prefix="repaint-nerf-test-config-")
+atexit.register(shutil.rmtree, os.environ["REPAINT_NERF_CONFIG_DIR"], True)  # not one folder left per run
 ARTIFACTS = Path(__file__).parent / "artifacts"
 
 
