@@ -89,6 +89,14 @@ def upsample_codes(codes: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return _resize(np.asarray(codes, dtype=np.float32), size, cv2.INTER_LINEAR)
 
 
+def bilinear_taps(pos: torch.Tensor, n_out: int, n_in: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bilinear taps at integer positions `pos` of an n_out-sample axis resized from n_in samples, by cv2.resize's
+    rule (half-pixel centres, clamped at the edges): (i0, i1, frac), value = (1 - frac) src[i0] + frac src[i1]."""
+    s = ((pos.float() + 0.5) * (n_in / n_out) - 0.5).clamp(0, n_in - 1)
+    i0 = s.floor().long()
+    return i0, (i0 + 1).clamp(max=n_in - 1), s - i0
+
+
 def sample_codes(codes: torch.Tensor, size: tuple[int, int], u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """Bilinear lookup of (h, w, K) codes at full-resolution integer pixels (u, v) of an (H, W) image.
 
@@ -97,11 +105,9 @@ def sample_codes(codes: torch.Tensor, size: tuple[int, int], u: torch.Tensor, v:
     """
     h, w, _ = codes.shape
     big_h, big_w = size
-    x = ((u.float() + 0.5) * (w / big_w) - 0.5).clamp(0, w - 1)
-    y = ((v.float() + 0.5) * (h / big_h) - 0.5).clamp(0, h - 1)
-    x0, y0 = x.floor().long(), y.floor().long()
-    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x0, x1, fx = bilinear_taps(u, big_w, w)
+    y0, y1, fy = bilinear_taps(v, big_h, h)
+    fx, fy = fx[:, None], fy[:, None]
     c = codes.float()
     top = c[y0, x0] * (1 - fx) + c[y0, x1] * fx
     bot = c[y1, x0] * (1 - fx) + c[y1, x1] * fx

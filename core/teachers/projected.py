@@ -16,7 +16,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from repaint_nerf.core.teachers.base import check_image
+from repaint_nerf.core.teachers.base import check_image, l2_normalize
+from repaint_nerf.core.teachers.codec import bilinear_taps, sample_codes
 
 EPS = 1e-8  # base.l2_normalize's: a shorter vector is left as zero
 
@@ -67,14 +68,6 @@ class Dense:
         return f @ torch.from_numpy(np.ascontiguousarray(basis, dtype=np.float32)), torch.linalg.vector_norm(f, dim=1)
 
 
-def _taps(n_out: int, n_in: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Bilinear taps of a resize from n_in to n_out samples, cv2's INTER_LINEAR rule (half-pixel centres, clamped
-    at the edges): (i0, i1, frac) with value = (1 - frac) * src[i0] + frac * src[i1]."""
-    s = ((torch.arange(n_out, dtype=torch.float64) + 0.5) * (n_in / n_out) - 0.5).clamp(0, n_in - 1)
-    i0 = s.floor().long()
-    return i0, (i0 + 1).clamp(max=n_in - 1), s - i0
-
-
 class PooledUpsampled:
     """L2-normalised features v / |v|, v = (1 - w) u + w * (mean of u over the pixel's region), where u is the
     concatenation of maps (h_l, w_l, C_l) upsampled bilinearly to (H, W) (cv2's INTER_LINEAR): what
@@ -86,8 +79,8 @@ class PooledUpsampled:
         self.maps = [torch.from_numpy(np.ascontiguousarray(m, dtype=np.float32)) for m in maps]
         self.dim = int(sum(m.shape[2] for m in self.maps))
         big_h, big_w = self.size
-        self.ty = [_taps(big_h, m.shape[0]) for m in self.maps]
-        self.tx = [_taps(big_w, m.shape[1]) for m in self.maps]
+        self.ty = [bilinear_taps(torch.arange(big_h), big_h, m.shape[0]) for m in self.maps]
+        self.tx = [bilinear_taps(torch.arange(big_w), big_w, m.shape[1]) for m in self.maps]
         self.labels = labels
         if self.w > 0:
             # region means of u: each region's share of each small-map cell (its pixels' taps), times the cells
@@ -100,28 +93,18 @@ class PooledUpsampled:
                 for yi, wy in ((y0, 1 - fy), (y1, fy)):
                     for xi, wx in ((x0, 1 - fx), (x1, fx)):
                         cell = (yi[:, None] * m.shape[1] + xi[None, :]).reshape(-1)
-                        share.index_add_(0, labels * cells + cell, (wy[:, None] * wx[None, :]).reshape(-1))
+                        share.index_add_(0, labels * cells + cell, (wy[:, None] * wx[None, :]).reshape(-1).double())
                 share = share.view(n, -1) / counts[:, None]
                 self.pooled.append((share @ m.reshape(-1, m.shape[2]).double()).float())  # (regions, C_l)
 
-    def _pixel_taps(self, l: int, idx: torch.Tensor):
-        """At flat pixel indices `idx`: the four cells' (row, col) in map l and their weights."""
-        (y0, y1, fy), (x0, x1, fx) = self.ty[l], self.tx[l]
-        rows, cols = idx // self.size[1], idx % self.size[1]
-        ya, yb, wy = y0[rows], y1[rows], fy[rows]
-        xa, xb, wx = x0[cols], x1[cols], fx[cols]
-        return ((ya, xa, (1 - wy) * (1 - wx)), (ya, xb, (1 - wy) * wx), (yb, xa, wy * (1 - wx)), (yb, xb, wy * wx))
-
     def at(self, idx: np.ndarray) -> np.ndarray:
         idx = torch.as_tensor(np.asarray(idx), dtype=torch.long)
+        rows, cols = idx // self.size[1], idx % self.size[1]
         parts = []
         for l, m in enumerate(self.maps):
-            u = sum(wt[:, None] * m[r, c].double() for r, c, wt in self._pixel_taps(l, idx))
-            if self.w > 0:
-                u = (1 - self.w) * u + self.w * self.pooled[l][self.labels[idx]].double()
-            parts.append(u)
-        v = torch.cat(parts, 1)
-        return (v / torch.linalg.vector_norm(v, dim=1, keepdim=True).clamp_min(EPS)).float().numpy()
+            u = sample_codes(m, self.size, cols, rows)  # the upsampled map at those pixels
+            parts.append((1 - self.w) * u + self.w * self.pooled[l][self.labels[idx]] if self.w > 0 else u)
+        return l2_normalize(torch.cat(parts, 1).numpy())
 
     def project(self, basis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         big_h, big_w = self.size
@@ -176,8 +159,7 @@ class Blended:
         self.dim = int(sum(p.dim for _, p in parts))
 
     def at(self, idx: np.ndarray) -> np.ndarray:
-        v = torch.from_numpy(np.concatenate([np.float32(s) * p.at(idx) for s, p in self.parts], 1))
-        return (v / torch.linalg.vector_norm(v, dim=1, keepdim=True).clamp_min(EPS)).numpy()
+        return l2_normalize(np.concatenate([np.float32(s) * p.at(idx) for s, p in self.parts], 1))
 
     def project(self, basis: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         proj, sq, at = None, None, 0
