@@ -71,7 +71,10 @@ def plot(result: dict, path: Path) -> None:
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
     for e in result["sizes"]:
         c = e["curve"]
-        a.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=f"{e['size']} px")
+        line, = a.plot([p["seconds"] for p in c], [p["psnr"] for p in c], "o-", ms=3, label=f"{e['size']} px")
+        if e.get("content_size"):
+            a.plot([p["seconds"] for p in c], [p["psnr_content"] for p in c], "--", color=line.get_color(), lw=1,
+                   label=f"{e['size']} px on the {e['content_size']}-px images")
     targets = result.get("targets") or TARGETS
     for t in targets:
         a.axhline(t, color="gray", lw=0.8, ls=":")
@@ -131,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
         scene_path = make_scene(args.preset, Path(tmp.name) / args.preset, size=size, views=args.views,
                                 seed=args.seed, test_views=args.test_views)
     heads = "".join(f" {'s->' + format(t, 'g'):>7}" for t in targets)
-    print(f"{'size':>5}{heads} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
+    heads += "".join(f" {'s->' + format(t, 'g') + '@' + str(min(sizes)):>11}" for t in targets)
+    print(f"{'size':>5}{heads} {'ceiling':>7} {'st/s 0-30':>9} {'st/s':>6} {'spr':>6} {'render ms':>9} "
           f"{'eval s':>7} {'train s':>7} {'RSS MB':>7} {'PSNR':>6}", flush=True)
 
     out = Path(args.json)
@@ -141,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
         done.append(e)
         atomic.write_json(out, {"sizes": done, "partial": True})  # a long run keeps what it measured
         times = "".join(f" {_fmt(e[f'seconds_to_{t:g}']):>7}" for t in targets)
-        print(f"{e['size']:5d}{times} "
+        times += "".join(f" {_fmt(e.get(f'seconds_to_{t:g}_content')):>11}" for t in targets)
+        print(f"{e['size']:5d}{times} {_fmt(e.get('detail_ceiling_psnr'), '.2f'):>7} "
               f"{_fmt(e['steps_per_s_early'], '.2f'):>9} {_fmt(e['steps_per_s'], '.2f'):>6} "
               f"{_fmt(e['samples_per_ray']):>6} {e['render_ms']:9.0f} {e['eval_seconds']:7.2f} "
               f"{e['train_seconds']:7.1f} {e['peak_rss_mb']:7.0f} {e['final_psnr']:6.2f}", flush=True)
@@ -158,5 +163,8 @@ def run(args: argparse.Namespace) -> int:
     png = out.with_suffix(".png")
     plot(result, png)
     print(f"PSNR: {result['psnr_measured']}")
+    if len(sizes) > 1:
+        print(f"s->T@{min(sizes)}: the same field scored on the {min(sizes)}-px images (the content every size holds); "
+              f"ceiling: the {min(sizes)}-px images resized to the size, scored against its own (detail they lack)")
     print(f"wrote {out} and {png}")
     return 0

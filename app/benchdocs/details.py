@@ -69,8 +69,11 @@ def _sdcost(d: dict) -> str:
 def _scale(d: dict) -> str:
     sizes = sorted(d["sizes"], key=lambda r: r["size"])
     targets, goal = sorted(d.get("targets") or TARGETS), goal_target(d)
+    small = sizes[0]["size"]
+    content = any(r.get("detail_ceiling_psnr") is not None for r in sizes)  # runs before the content columns lack them
     rows = [(r["size"], *(num(r.get(f"seconds_to_{t:g}"), 1) for t in targets),
-             num(size_ratio(d, r["size"], sizes[0]["size"], goal)),
+             num(size_ratio(d, r["size"], small, goal)),
+             *((num(r.get(f"seconds_to_{goal:g}_content"), 1), num(r.get("detail_ceiling_psnr"))) if content else ()),
              num(r.get("steps_per_s"), 1), num(r.get("samples_per_ray"), 1), num(r.get("render_ms"), 0),
              num(r.get("final_psnr")), num(r.get("peak_rss_mb"), 0)) for r in sizes]
     scene = d.get("scene", {})
@@ -78,6 +81,8 @@ def _scale(d: dict) -> str:
             f"{sizes[0].get('train_views', '?')} training views, {num(d.get('seconds_per_size'), 0)} s of training "
             f"per size (issue 33's goal: time to {goal:g} dB at 256 px at most 2x that at 128, at 512 at most 4x):\n\n"
             + table(("long side (px)", *(f"s to {t:g} dB" for t in targets), f"x smallest (to {goal:g} dB)",
+                     *((f"s to {goal:g} dB on the {small}-px images", f"{small}-px images' ceiling (dB)")
+                       if content else ()),
                      "steps/s", "samples per ray", "full-view render (ms)", "final PSNR (dB)", "peak RSS (MB)"), rows))
 
 

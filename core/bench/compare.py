@@ -45,6 +45,8 @@ FIGURES: dict[str, list[Figure]] = {
     ],
     "scale": [
         Figure("{size} px: seconds to {target} dB", "sizes[{size}].seconds_to_{target}", True, "s"),
+        Figure("{size} px: seconds to {target} dB on the smallest size's images",
+               "sizes[{size}].seconds_to_{target}_content", True, "s"),
         Figure("{size} px: steps per second", "sizes[{size}].steps_per_s", False, "/s"),
         Figure("{size} px: samples per ray", "sizes[{size}].samples_per_ray", True, ""),
         Figure("{size} px: render", "sizes[{size}].render_ms", True, "ms"),

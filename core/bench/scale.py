@@ -3,6 +3,10 @@ trained for a fixed budget, and the time to each target test PSNR (25 / 30 dB un
 never reach 30), steps/s early and later, samples per ray, the time of one full-view render, the closing
 evaluation and the peak RSS are measured. Each size runs in a
 fresh process (spawned), so its peak RSS is its own. Returns dicts; the driver is app/bench/scale.py.
+
+A larger image holds detail a smaller one lacks, so a fixed PSNR near its ceiling asks it for more than the same PSNR
+asks of the smaller. Each larger size is therefore also scored on the smallest size's images (seconds_to_<t>_content:
+the content both hold), and `detail_ceiling_psnr` says what those images alone would score at the larger size.
 """
 from __future__ import annotations
 
@@ -78,14 +82,36 @@ def render_ms(trainer, repeats: int = 3, warmup: int = 1) -> tuple[float, float]
     return 1000.0 * sorted(times)[len(times) // 2], spr
 
 
+def detail_ceiling(scene, smaller, background) -> float:
+    """Mean PSNR (dB) over the test views of `smaller`'s images (the same capture loaded smaller) resized bilinearly to
+    `scene`'s size against `scene`'s own, both over `background`: what a field that held exactly the smaller images'
+    content would score at this size. A target near it asks the larger size for detail the smaller never had."""
+    import cv2
+    import numpy as np
+
+    from repaint_nerf.core.train.stage1 import target_image
+
+    split = next((s for s in ("test", "val", "train") if s in scene.splits and len(scene.splits[s])), "train")
+    scores = []
+    for big, small in zip(scene.split(split).images, smaller.split(split).images):
+        ref = target_image(big, background).cpu().numpy()
+        low = cv2.resize(target_image(small, background).cpu().numpy(), (ref.shape[1], ref.shape[0]),
+                         interpolation=cv2.INTER_LINEAR)
+        scores.append(-10.0 * np.log10(max(float(np.mean((low - ref) ** 2)), 1e-12)))
+    return float(np.mean(scores))
+
+
 def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, seed: int = 0,
                  device: str | None = None, rays: int | None = None,
                  early_seconds: float = EARLY_SECONDS, early_max_samples: int | None = None,
-                 targets: tuple[float, ...] = TARGETS, dense_until: int = DENSE_UNTIL) -> dict:
+                 targets: tuple[float, ...] = TARGETS, dense_until: int = DENSE_UNTIL,
+                 content_size: int | None = None) -> dict:
     """Train the scene loaded at long side `size` for `seconds` (evaluation excluded) and measure it; one
     entry of the `sizes` list (see the module docstring), with seconds_to_<t> for each of `targets` (dB).
     `early_max_samples` overrides TrainConfig's (0 = the image's sample budget from the first step, as before
-    coarse-to-fine marching)."""
+    coarse-to-fine marching). With `content_size` below `size`, every evaluation also scores the field on the
+    images loaded at that size (the content both sizes hold: seconds_to_<t>_content), and `detail_ceiling_psnr`
+    is what the smaller images alone would score (detail_ceiling)."""
     from repaint_nerf.core.device import describe
     from repaint_nerf.core.scene.loaders.detect import load_scene
     from repaint_nerf.core.train.stage1 import Stage1Trainer, TrainConfig
@@ -100,6 +126,7 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         cfg.early_max_samples = int(early_max_samples)
     trainer = Stage1Trainer(scene, None, cfg, device=device)
     trainer.plan(seconds=seconds)
+    content = load_scene(scene_path, max_size=int(content_size)) if content_size and content_size < size else None
     early = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
     late = {"steps": 0, "seconds": 0.0, "samples": [], "candidates": []}
     trace: list[dict] = []
@@ -125,15 +152,17 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
             span.update(steps=0, seconds=0.0, samples=0.0)
 
     eval_total = 0.0
-    ev = trainer.evaluate()
-    eval_total += ev["seconds"]
-    curve = [{"seconds": 0.0, "step": 0, "msamples": 0.0, "psnr": ev["psnr"]}]
-    for t in eval_times(seconds, evals, report_at=tuple(range(1, int(dense_until) + 1)), minute_curve=False):
-        trainer.train(seconds=t, callback=on_step)
+    curve: list[dict] = []
+    for t in [0.0] + eval_times(seconds, evals, report_at=tuple(range(1, int(dense_until) + 1)), minute_curve=False):
+        if t > 0:
+            trainer.train(seconds=t, callback=on_step)
         ev = trainer.evaluate()
         eval_total += ev["seconds"]
-        curve.append({"seconds": trainer.train_seconds, "step": trainer.step_count, "msamples": work["samples"] / 1e6,
-                      "psnr": ev["psnr"]})
+        point = {"seconds": trainer.train_seconds, "step": trainer.step_count, "msamples": work["samples"] / 1e6,
+                 "psnr": ev["psnr"]}
+        if content is not None:
+            point["psnr_content"] = trainer.evaluate(scene=content)["psnr"]
+        curve.append(point)
     closing = trainer.evaluate(with_ssim=True)
     ms, render_spr = render_ms(trainer)
     h, w = scene.train.images[0].shape[:2]
@@ -147,6 +176,11 @@ def measure_size(scene_path: str, size: int, seconds: float, evals: int = 12, se
         # does not change, for comparing sizes measured at different times
         **{f"{name}_to_{t:g}": time_to([{**p, "seconds": p[key]} for p in curve], t)
            for name, key in (("steps", "step"), ("msamples", "msamples")) for t in targets},
+        **({f"seconds_to_{t:g}_content": time_to([{**p, "psnr": p["psnr_content"]} for p in curve], t)
+            for t in targets} if content is not None else {}),
+        "content_size": int(content_size) if content is not None else None,
+        "detail_ceiling_psnr": detail_ceiling(scene, content, trainer.eval_background()) if content is not None
+        else None,
         "steps_per_s_early": early["steps"] / early["seconds"] if early["seconds"] > 0 else None,
         "steps_per_s": late["steps"] / late["seconds"] if late["seconds"] > 0 else None,
         "steps_per_s_overall": trainer.step_count / max(trainer.train_seconds, 1e-9),
@@ -185,7 +219,7 @@ def measure(scene_path: str | Path, sizes: list[int], seconds: float, evals: int
     for size in sizes:
         kw = dict(evals=evals, seed=seed, device=device, rays=rays, early_seconds=early_seconds,
                   early_max_samples=early_max_samples, targets=tuple(float(t) for t in targets),
-                  dense_until=int(dense_until))
+                  dense_until=int(dense_until), content_size=int(min(sizes)))
         if isolate:
             with ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn")) as pool:
                 entry = pool.submit(measure_size, str(scene_path), int(size), float(seconds), **kw).result()

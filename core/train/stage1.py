@@ -751,8 +751,12 @@ class Stage1Trainer:
 
     @torch.no_grad()
     def evaluate(self, split: str | None = None, max_views: int | None = None, with_ssim: bool = False,
-                 full: bool = False, deadline: float | None = None, seconds: float | None = None) -> dict:
+                 full: bool = False, deadline: float | None = None, seconds: float | None = None,
+                 scene=None) -> dict:
         """Mean PSNR (and SSIM) of renders of a split against its images composited over the eval background.
+        `scene`: another load of the same capture to score against (the same poses at another image size: bench
+        scale scores a 512-px field on the 128-px images); its poses go into field space by this scene's
+        normalisation.
 
         By default a bounded evaluation, whose cost does not grow with the image size: `EVAL_VIEWS` views
         spread over the split (or `max_views`), an `EVAL_GRID` x `EVAL_GRID` grid of pixels spread evenly over
@@ -767,8 +771,8 @@ class Stage1Trainer:
         says the side used).
         """
         split = split or self.eval_split()
-        data = self.scene.split(split)
-        cams = self.scene.field_cameras(split).to(self.device)
+        data = (scene or self.scene).split(split)
+        cams = data.cameras.with_poses(self.scene.norm.poses_to_field(data.cameras.c2w)).to(self.device)
         bg = self.eval_background()
         opts = RenderOptions(outputs=("rgb",), background=bg, t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=False,
