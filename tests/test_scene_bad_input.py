@@ -280,3 +280,24 @@ def test_bad_kind(tmp_path):
     write_blender(tmp_path, counts={"train": 1})
     with pytest.raises(UserError, match="unknown scene kind"):
         load_scene(tmp_path, kind="spherical")
+
+
+@pytest.mark.parametrize("photos", ["images", "input", None])
+def test_an_incomplete_model_points_to_the_photos_beside_it(tmp_path, photos):
+    """A model without images.bin (a copy that left out its large files) beside photos names the photo folder to open
+    instead: `images/`, or `input/` where 3D Gaussian Splatting's convert.py keeps the photos as taken."""
+    root = tmp_path / "scene"
+    rng = np.random.default_rng(0)
+    write_colmap(root, ring_poses(2), "PINHOLE", [8, 8, 4, 4], 8, 8, rng.uniform(-1, 1, (3, 3)), np.zeros((3, 3)))
+    (root / "sparse" / "0" / "images.bin").unlink()
+    for p in (root / "images").iterdir():
+        p.unlink()
+    if photos is not None:
+        write_image(root / photos / "a.png", pattern(8, 8, 0))
+    with pytest.raises(SceneError) as info:
+        load_scene(root)
+    msg = str(info.value)
+    if photos is None:
+        assert "run structure-from-motion again" in msg and "open " not in msg, msg
+    else:
+        assert f"open {root / photos}" in msg, msg

@@ -76,12 +76,27 @@ def probe_binary_model(model: Path) -> None:
         raise SceneError(f"cannot read the COLMAP model: a .bin file is corrupt ({why})", model, hint=hint)
 
 
+def photos_beside(model: Path) -> Path | None:
+    """A folder of photos beside a model folder (`images/`, or `input/` where 3D Gaussian Splatting's convert.py
+    keeps the photos as taken), from which structure-from-motion can recover the poses; None when there is none."""
+    from repaint_nerf.core.scene.loaders.images import list_images
+
+    root = model.parent.parent if model.parent.name == "sparse" else model.parent
+    for cand in (root / "images", root / "input"):
+        if list_images(cand):
+            return cand
+    return None
+
+
 def read_model(model: Path) -> pycolmap.Reconstruction:
     """Read a model folder with pycolmap; a partial or corrupt model is a `SceneError`."""
     for stem in ("cameras", "images", "points3D"):
         if not ((model / f"{stem}.bin").is_file() or (model / f"{stem}.txt").is_file()):
+            photos = photos_beside(model)
+            again = (f"or recover the poses from the photos: open {photos} (structure-from-motion runs once and is "
+                     "cached beside them)" if photos is not None else "or run structure-from-motion again")
             raise SceneError(f"the COLMAP model is incomplete: {stem}.bin / {stem}.txt is missing", model,
-                             hint="re-export the model (colmap model_converter) or run structure-from-motion again")
+                             hint=f"re-export the model (colmap model_converter) {again}")
     probe_binary_model(model)
     try:
         rec = pycolmap.Reconstruction()
