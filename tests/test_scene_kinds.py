@@ -32,6 +32,26 @@ def test_presets_layouts_give_their_kind(preset, seed):
     assert kind == spec.kind, why
 
 
+def test_in_opaque_photos_a_few_points_beyond_the_cameras_mean_unbounded():
+    """Far surfaces give few SfM points, so in opaque photos 5% of them beyond the cameras stand for much of what the
+    photos show (a forest behind a trunk: 4%; a bedroom around a plush: 10%); a cut-out needs none of it held."""
+    _, c2w, pts = _layout("demo")
+    o, d = c2w[:, :3, 3], -c2w[:, :3, 2]
+    from repaint_nerf.core.scene.normalize import axes_centre
+
+    centre = axes_centre(o, d)
+    r_cam = float(np.median(np.linalg.norm(o - centre, axis=1)))
+    rng = np.random.default_rng(0)
+    n_far = len(pts) // 19  # 5% of the points
+    dirs = rng.normal(size=(n_far, 3))
+    far = centre + dirs / np.linalg.norm(dirs, axis=1, keepdims=True) * r_cam * rng.uniform(1.5, 3.0, (n_far, 1))
+    with_far = np.concatenate([pts, far])
+    assert kind_from_layout(c2w, with_far)[0] == "bounded"  # a cut-out: the 20% rule
+    kind, why = kind_from_layout(c2w, with_far, opaque=True)
+    assert kind == "unbounded" and "5% of the sparse points lie beyond the cameras" in why, why
+    assert kind_from_layout(c2w, pts, opaque=True)[0] == "bounded"  # nothing beyond: an object on a plain backdrop
+
+
 @pytest.mark.parametrize("preset,far,expected", [("demo", 5.5, "bounded"), ("room360", 7.5, "unbounded")])
 def test_without_points_the_far_depth_decides(preset, far, expected):
     _, c2w, _ = _layout(preset)
