@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -101,6 +102,28 @@ def test_second_open_is_cached_and_load_scene_uses_it(sfm_run):
     assert scene.train.names == first.train.names
     assert np.allclose(scene.train.cameras.c2w.numpy(), first.train.cameras.c2w.numpy())
     assert scene.norm.scale > 0 and scene.kind == "unbounded"
+
+
+def test_a_new_workspace_adopts_the_result_beside_the_photos(sfm_run, tmp_path):
+    """`sfm PHOTOS` caches beside the photos; `train PHOTOS --workspace WS` then brings that result into WS instead
+    of running every phase again, and WS keeps its own copy once the one beside the photos is gone."""
+    from repaint_nerf.core.sfm.run import default_workspace, sfm_scene
+
+    photos = tmp_path / "photos"
+    shutil.copytree(sfm_run["photos"], photos)  # copy2: names, sizes and times kept, so the fingerprint matches
+    beside = default_workspace(photos)
+    shutil.copytree(sfm_run["root"] / "ws" / "sfm", beside / "sfm")
+    phases = []
+    t0 = time.perf_counter()
+    scene = sfm_scene(photos, tmp_path / "ws", progress=lambda p, f, m: phases.append((p, m)))
+    took = time.perf_counter() - t0
+    assert [p for p, _ in phases] == ["cached"] and str(beside) in phases[0][1]
+    assert scene.extra["sfm"]["cached"] and took < max(0.5 * sfm_run["seconds"], 2.0)
+    assert np.allclose(scene.train.cameras.c2w.numpy(), sfm_run["scene"].train.cameras.c2w.numpy())
+    shutil.rmtree(beside)
+    again = sfm_scene(photos, tmp_path / "ws", progress=lambda p, f, m: phases.append((p, m)))
+    assert again.extra["sfm"]["cached"] and str(tmp_path / "ws") in phases[-1][1]
+    assert again.train.names == scene.train.names
 
 
 def test_cli_writes_the_json_report(sfm_run, capsys):

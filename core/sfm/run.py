@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import shutil
 import time
 from collections.abc import Callable
@@ -60,7 +61,34 @@ def cached_report(photos_dir: Path, workspace_dir: Path, matcher: str = "auto",
             report.get("fingerprint") != intake.fingerprint(photos_dir) or \
             (trusted and find_model(sfm / "scene") is None):
         return None  # a rejected model has no scene folder: its report alone answers (with the same error)
+    report["scene_dir"] = str(sfm / "scene")  # where it is now (a workspace may have moved since)
     return report
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)  # the same files, no second copy on disk
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def adopt_cache(photos_dir: Path, workspace_dir: Path, matcher: str = "auto",
+                max_side: int = intake.MAX_SIDE) -> dict | None:
+    """The result `repaint-nerf sfm` left beside the photos (default_workspace), brought into `workspace_dir` when
+    it matches these photos and options: `sfm PHOTOS` then `train PHOTOS --workspace WS` runs SfM once, not twice
+    (a 97-photo capture's 3.4 minutes came out of train's --seconds). Only the report and the final model with its
+    undistorted images are brought, hard-linked where the file system allows. None when there is nothing to adopt."""
+    beside = default_workspace(photos_dir)
+    if beside.resolve() == Path(workspace_dir).resolve() or cached_report(photos_dir, beside, matcher,
+                                                                           max_side) is None:
+        return None
+    sfm = _sfm_dir(workspace_dir)
+    shutil.rmtree(sfm, ignore_errors=True)
+    sfm.mkdir(parents=True)
+    if (beside / "sfm" / "scene").is_dir():
+        shutil.copytree(beside / "sfm" / "scene", sfm / "scene", copy_function=_link_or_copy)
+    shutil.copy2(beside / "sfm" / "report.json", sfm / "report.json")
+    return cached_report(photos_dir, workspace_dir, matcher, max_side)
 
 
 def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, progress: Progress | None = None,
@@ -76,11 +104,13 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
     workspace_dir = Path(workspace_dir) if workspace_dir is not None else default_workspace(photos_dir)
     intake.photos_folder(photos_dir)  # a missing folder is a SceneError before anything is created
     if not force:
-        report = cached_report(photos_dir, workspace_dir, matcher, max_side)
+        report, where = cached_report(photos_dir, workspace_dir, matcher, max_side), workspace_dir
+        if report is None:
+            report, where = adopt_cache(photos_dir, workspace_dir, matcher, max_side), default_workspace(photos_dir)
         if report is not None:
             report["cached"] = True
             if progress:
-                progress("cached", 1.0, f"reusing structure-from-motion from {workspace_dir}")
+                progress("cached", 1.0, f"reusing structure-from-motion from {where}")
             return _trusted_or_raise(report, photos_dir)
     sfm = _sfm_dir(workspace_dir)
     say = progress or (lambda phase, frac, msg: None)
