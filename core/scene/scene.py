@@ -38,6 +38,10 @@ class Normalization:
         out[..., :3, 3] = self.to_field(c2w[..., :3, 3])
         return out
 
+    def cameras_to_field(self, cams: Cameras) -> Cameras:
+        """`cams` (world units) with their poses in field space: what the renderer and trainer use."""
+        return cams.with_poses(self.poses_to_field(cams.c2w))
+
     def to_dict(self) -> dict:
         return {"center": [float(c) for c in self.center], "scale": float(self.scale)}
 
@@ -95,5 +99,4 @@ class Scene:
 
     def field_cameras(self, split: str = "train") -> Cameras:
         """Cameras of a split with poses moved into field space (what the renderer and trainer use)."""
-        cams = self.split(split).cameras
-        return cams.with_poses(self.norm.poses_to_field(cams.c2w))
+        return self.norm.cameras_to_field(self.split(split).cameras)

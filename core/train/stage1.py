@@ -772,7 +772,7 @@ class Stage1Trainer:
         """
         split = split or self.eval_split()
         data = (scene or self.scene).split(split)
-        cams = data.cameras.with_poses(self.scene.norm.poses_to_field(data.cameras.c2w)).to(self.device)
+        cams = self.scene.norm.cameras_to_field(data.cameras).to(self.device)
         bg = self.eval_background()
         opts = RenderOptions(outputs=("rgb",), background=bg, t_threshold=self.cfg.t_threshold,
                              max_samples=self.march_samples, perturb=False,
