@@ -317,6 +317,40 @@ def test_masks_render_through_the_cache_they_are_given_even_an_empty_one(monkeyp
     assert len(cache) == len(cams) and budgets == [96] * len(cams)
 
 
+def test_masks_shaped_on_smaller_maps_come_out_at_the_views_size_and_keep_the_clean_up():
+    """Views larger than the cache's `map_side` are shaped on maps of that size (the patch's view stays at its own,
+    which its pixels index) and come out at the view's size: the 3D clean-up still drops the look-alike, which
+    needs the cameras scaled to the maps (`map_cameras`), and the masks match those shaped at full size."""
+    from repaint_nerf.core.render.renderer import RenderOptions
+    from repaint_nerf.core.scene.cameras import Cameras
+    from repaint_nerf.core.select.masks import map_cameras, map_scale
+
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cams, opts = _ring_cameras(size=96), RenderOptions(max_samples=96)
+    gts = [_ball_gt(cams, i, centers[0], 0.22).numpy() for i in range(len(cams))]
+    ys, xs = np.nonzero(gts[0])
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    out = {}
+    for side in (0, 48):
+        cache = ViewCache(field, None, cams, render_opts=opts, map_side=side)
+        sel = Selection(threshold=0.5)
+        sel.add_patch(cache.get(0).feature, Patch(0, cx - 3, cy - 3, cx + 4, cy + 4))
+        out[side] = masks_for_views(field, None, cams, sel, cleanup=True, cache=cache)
+        maps = [cache.mask_maps(i) for i in range(len(cams))]
+        assert [m.depth.shape[0] for m in maps] == ([96] * 4 if side == 0 else [96, 48, 48, 48])  # view 0: the patch's
+        scaled = map_cameras(cams, maps)
+        assert scaled.width.tolist() == [m.depth.shape[1] for m in maps]
+    assert all(m.shape == (96, 96) for m in out[48])
+    both = [g | _ball_gt(cams, i, centers[1], 0.22).numpy() for i, g in enumerate(gts)]
+    # the ball is ~16 px across at 48 px: its outline moves by up to a map pixel (no photo to snap it to here)
+    assert _iou(out[0], gts) > 0.95 and _iou(out[48], gts) > 0.85 and _iou(out[48], both) < 0.75
+    assert _iou(out[48], out[0]) > 0.85
+    assert map_scale(96, 48, 32) == pytest.approx(1 / 3) and map_scale(96, 48, 0) == 1.0 and map_scale(20, 30, 32) == 1.0
+    two = Cameras.cat([cams[1], cams[0].scaled(0.5)])
+    assert two.width.tolist() == [96, 48] and torch.equal(two.c2w[0], cams.c2w[1])
+
+
 class HazeBeforeWall(nn.Module):
     """A half-transparent sheet (x in [0.1, 0.15], optical thickness 1.2: 70% opaque) in front of an opaque wall
     (x >= 0.5): a thin surface a trained field's rays go on through."""

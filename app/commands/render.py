@@ -84,8 +84,7 @@ def run(args: argparse.Namespace) -> int:
         for k in range(args.frames):
             ctl.yaw = start + 2 * np.pi * k / args.frames
             views.append(ctl.cameras(w0, h0))
-        cams = Cameras(*(torch.cat([getattr(c, f) for c in views]) for f in
-                         ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+        cams = Cameras.cat(views)
         images = None
     else:
         name = args.split if args.split in scene.splits else "train"

@@ -110,13 +110,6 @@ def iou(masks: list[np.ndarray], gts: list[np.ndarray]) -> float:
     return inter / union if union else 1.0
 
 
-def _cat_cameras(a, b):
-    from repaint_nerf.core.scene.cameras import Cameras
-
-    return Cameras(*(torch.cat([getattr(a, k), getattr(b, k)]) for k in
-                     ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
-
-
 class Evaluator:
     """Masks of the test views for one patch query on the current field, at any threshold and with any
     geometry parts. The geometry runs over the test views and every training view, as `select` runs it over the
@@ -151,9 +144,11 @@ class Evaluator:
     def _with_training_views(self, test_views: list[int]) -> tuple[list, object, list | None]:
         """(maps, cameras, photos or None) of test views `test_views` followed by every training view: the views
         `select` shapes masks over, with the held-out ones in front."""
+        from repaint_nerf.core.scene.cameras import Cameras
+
         maps = [self.test[i] for i in test_views] + [self.train_maps(i) for i in range(len(self.train_cams))]
         test_cams = self.test_cams.to("cpu")[torch.tensor(test_views, dtype=torch.long)]
-        cams = _cat_cameras(test_cams, self.train_cams.to("cpu"))
+        cams = Cameras.cat([test_cams, self.train_cams.to("cpu")])
         images = None if self.test_images is None or self.train_images is None else \
             [self.test_images[i] for i in test_views] + list(self.train_images)
         return maps, cams, images

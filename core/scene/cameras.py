@@ -49,6 +49,13 @@ class Cameras:
         return Cameras(c2w_t, vec(fx, torch.float32), vec(fy, torch.float32), vec(cx, torch.float32),
                        vec(cy, torch.float32), vec(width, torch.int64), vec(height, torch.int64))
 
+    @staticmethod
+    def cat(parts: list["Cameras"]) -> "Cameras":
+        """The cameras of `parts`, in order, as one set (on the first part's device)."""
+        dev = parts[0].device
+        return Cameras(*(torch.cat([getattr(c, k).to(dev) for c in parts]) for k in
+                         ("c2w", "fx", "fy", "cx", "cy", "width", "height")))
+
     def __len__(self) -> int:
         return int(self.c2w.shape[0])
 

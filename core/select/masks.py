@@ -31,6 +31,11 @@ MASK_INDEX = "index.json"
 # nearer toys' pixels in the masks 80 -> 68 (of 6438 can pixels); toys auto 0.916 -> 0.917; demo 0.990 -> 0.990. No
 # extra samples or render: the same compositing with a mask on the weights.
 FIRST_SURFACE = True
+# The views' masks are shaped on maps whose long side is at most MAP_SIDE px (0: the views' own size), then brought
+# to each view's size and their outline re-decided on its photo (`shaped_masks`). The geometry's pixel constants
+# (crease stencil, closing, attach rounds) were tuned on 128-px views, and rendering a view's maps is most of a
+# selection's cost: snowmiku (81 views, 512x384, contracted) rendered 4.35 s a view, 352 of select's 423 s.
+MAP_SIDE = 256
 
 
 def check_threshold(threshold: float) -> float:
@@ -91,6 +96,7 @@ class ViewMaps:
     depth: Tensor
     opacity: Tensor
     expected_depth: Tensor | None = None
+    scale: float = 1.0  # of the view's camera the maps were rendered at (Cameras.scaled)
 
     def edge_depth(self) -> Tensor:
         """The depth the automatic threshold's region stops at (`expected_depth`, else `depth`)."""
@@ -101,33 +107,65 @@ class ViewCache:
     """Rendered feature/depth/opacity maps per training view, kept while the field is unchanged.
 
     `token` identifies the field state (e.g. the training step or version id); a different token drops
-    everything. Maps are stored in fp16 on the CPU (64x64x32 features: 0.26 MB a view).
+    everything. Maps are stored in fp16 on the CPU (64x64x32 features: 0.26 MB a view). `get` renders a view at
+    its own size (what a patch's pixels index); `mask_maps` at most `map_side` px on the long side (`MAP_SIDE`).
     """
 
-    def __init__(self, field, grid, cameras, token=None, render_opts=None):
+    def __init__(self, field, grid, cameras, token=None, render_opts=None, map_side: int = MAP_SIDE):
         self.field, self.grid, self.cameras = field, grid, cameras
         self.token = token
         self.render_opts = render_opts
+        self.map_side = int(map_side)
         self._maps: dict[int, ViewMaps] = {}
+        self._small: dict[int, ViewMaps] = {}
 
     def reset(self, token=None) -> None:
         self.token = token
         self._maps.clear()
+        self._small.clear()
 
     def __len__(self) -> int:
-        return len(self._maps)
+        return len(self._maps.keys() | self._small.keys())
 
     def get(self, view: int) -> ViewMaps:
-        """The maps of training view `view`, rendered on first use."""
+        """The maps of training view `view` at its own size, rendered on first use."""
         if view not in self._maps:
             self._maps[view] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts)
         return self._maps[view]
 
+    def mask_maps(self, view: int) -> ViewMaps:
+        """The maps view `view`'s mask is shaped on: its own size's when held, else at `map_scale`."""
+        if view in self._maps:
+            return self._maps[view]
+        cam = self.cameras[int(view)] if 0 <= int(view) < len(self.cameras) else None
+        s = 1.0 if cam is None else map_scale(int(cam.width[0]), int(cam.height[0]), self.map_side)
+        if s >= 1.0:
+            return self.get(view)
+        if view not in self._small:
+            self._small[view] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts, scale=s)
+        return self._small[view]
 
-def render_view_maps(field, grid, cameras, view: int, opts=None, cancel: Callable[[], bool] | None = None
-                     ) -> ViewMaps | None:
-    """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer; None when
-    `cancel()` turns true meanwhile."""
+
+def map_scale(width: int, height: int, side: int = MAP_SIDE) -> float:
+    """The scale that brings a view's long side to at most `side` px (1 when it is smaller, or `side` is 0)."""
+    long = max(int(width), int(height))
+    return 1.0 if side <= 0 or long <= side else side / float(long)
+
+
+def map_cameras(cameras, maps: list[ViewMaps]):
+    """The views' cameras (on the CPU) at the size of their maps (`ViewMaps.scale`): what the geometry projects with."""
+    from repaint_nerf.core.scene.cameras import Cameras
+
+    cams = cameras.to("cpu")
+    if all(m.scale == 1.0 for m in maps):
+        return cams
+    return Cameras.cat([cams[i] if m.scale == 1.0 else cams[i].scaled(m.scale) for i, m in enumerate(maps)])
+
+
+def render_view_maps(field, grid, cameras, view: int, opts=None, cancel: Callable[[], bool] | None = None,
+                     scale: float = 1.0) -> ViewMaps | None:
+    """Render view `view`'s feature map, z-depth and opacity (field space) with the one renderer, at `scale` times
+    its size; None when `cancel()` turns true meanwhile."""
     from repaint_nerf.core.render.renderer import RenderOptions, render_camera
 
     n = len(cameras)
@@ -137,11 +175,11 @@ def render_view_maps(field, grid, cameras, view: int, opts=None, cancel: Callabl
     base = opts or RenderOptions()
     opts = replace(base, outputs=("feature", "depth", "median_depth", "opacity"), background=None, perturb=False,
                    feature_first_surface=FIRST_SURFACE)
-    out = render_camera(field, grid, cameras, int(view), opts, cancel=cancel)
+    out = render_camera(field, grid, cameras, int(view), opts, scale=scale, cancel=cancel)
     if out is None:
         return None
     return ViewMaps(out["feature"].to("cpu", torch.float16), out["median_depth"].float().cpu(),
-                    out["opacity"].float().cpu(), out["depth"].float().cpu())
+                    out["opacity"].float().cpu(), out["depth"].float().cpu(), float(scale))
 
 
 def masks_for_views(field, grid, cameras, selection, threshold: float | None = None, workspace=None,
@@ -162,19 +200,22 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     cache = cache if cache is not None else ViewCache(field, grid, cameras)  # an empty cache is falsy (__len__)
     n = len(cameras)
     sims, maps = [], []
+    patched = {p.view for p in selection.patches} if training_views else set()  # a patch's pixels index its view
     for i in range(n):
-        m = cache.get(i)
+        m = cache.get(i) if i in patched else cache.mask_maps(i)
         maps.append(m)
         sims.append(selection.similarity(m.feature))
         if progress:
             progress(i + 1, n)
     do_cleanup = selection.cleanup if cleanup is None else cleanup
-    seeds = selection_seeds(selection, maps, cameras, training_views, sims, t) if do_cleanup else []
+    cams = map_cameras(cameras, maps)
+    seeds = selection_seeds(selection, maps, cams, training_views, sims, t) if do_cleanup else []
     asked = (parts or parts_named(selection.geometry)) if seeds else GeometryParts.none()
     parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
     if images is None:  # what ran, for the index: the photo's edges need the photos
         parts = replace(parts, image=False)
-    out = shaped_masks(sims, maps, cameras, seeds, t, parts, images)
+    sizes = [(int(h), int(w)) for h, w in zip(cameras.height.tolist(), cameras.width.tolist())]
+    out = shaped_masks(sims, maps, cams, seeds, t, parts, images, sizes)
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
@@ -226,10 +267,12 @@ def patch_seeds(view: int, pixels: np.ndarray, maps: list[ViewMaps], cameras, si
 
 
 def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list, threshold: float,
-                 parts, images: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                 parts, images: list[np.ndarray] | None = None,
+                 sizes: list[tuple[int, int]] | None = None) -> list[np.ndarray]:
     """`similarity > threshold` per view, shaped by the geometry `parts` (core.select.geometry) from seed
-    pixels [(view, bool (H, W))] (`selection_seeds`) and, given the views' photos, their edges
-    (core.select.image_edges); the one path the CLI, the editor and bench mask share."""
+    pixels [(view, bool (H, W))] (`selection_seeds`), brought to the views' `sizes` ((H, W) each; None: the maps')
+    and, given the views' photos, re-decided along their edges (core.select.image_edges); the one path the CLI,
+    the editor and bench mask share. `cameras` are the views' at their maps' size (`map_cameras`)."""
     from repaint_nerf.core.select.cleanup3d import cleanup_masks
     from repaint_nerf.core.select.geometry import MIN_OPACITY, attach, geometric_masks
 
@@ -246,11 +289,23 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     out = [m.cpu().numpy().astype(bool) for m in masks]
     if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
         out = [attach(m, s > threshold, v.depth.numpy(), v.opacity.numpy()) for m, s, v in zip(out, np_sims, maps)]
+    opacity = [v.opacity.numpy() for v in maps]
+    if sizes is not None:
+        out = [resized(m, hw) > 0.5 for m, hw in zip(out, sizes)]
+        opacity = [resized(o, hw) for o, hw in zip(opacity, sizes)]
     if parts.image and seeds and images is not None:  # last: the photo decides the outline the geometry left
         from repaint_nerf.core.select.image_edges import snap_masks
 
-        out = snap_masks(images, out, [v.opacity.numpy() > MIN_OPACITY for v in maps])
+        out = snap_masks(images, out, [o > MIN_OPACITY for o in opacity])
     return out
+
+
+def resized(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """A map (bool or float (H, W)) as float32 at `size` (H, W), bilinear (itself when the size is its own)."""
+    a = np.asarray(a, np.float32)
+    if a.shape == tuple(size):
+        return a
+    return cv2.resize(a, (int(size[1]), int(size[0])), interpolation=cv2.INTER_LINEAR)
 
 
 def mask_png(mask: np.ndarray) -> bytes:

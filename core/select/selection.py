@@ -14,7 +14,8 @@ import torch
 from torch import Tensor
 
 from repaint_nerf.core.errors import UserError, WorkspaceError
-from repaint_nerf.core.select.masks import DEFAULT_THRESHOLD, check_threshold, similarity_map, threshold_mask
+from repaint_nerf.core.select.masks import (DEFAULT_THRESHOLD, check_threshold, map_cameras, similarity_map,
+                                            threshold_mask)
 from repaint_nerf.core.select.geometry import DEFAULT_GEOMETRY, GEOMETRY_NAMES
 from repaint_nerf.core.select.query import Patch, patch_query, text_query
 from repaint_nerf.core.workspace import atomic, integrity
@@ -107,7 +108,8 @@ class Selection:
         voters = [i for i in anchor_views(points, cams) if i != view]
         if not voters:
             return float(own)
-        others = self._voters(points, [cache.get(i) for i in voters], cams[torch.tensor(voters, dtype=torch.long)])
+        vm = [cache.mask_maps(i) for i in voters]  # the maps their masks will be shaped on
+        others = self._voters(points, vm, map_cameras(cams[torch.tensor(voters, dtype=torch.long)], vm))
         return walled_views_threshold(own, others)
 
     def _voters(self, points: np.ndarray, maps: list, cameras) -> list:
