@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         from repaint_nerf.core.teachers.text import workspace_text_query
 
         sel.add_text(args.text, *workspace_text_query(scene, ws, args.clip_path))
-        views = [cache.get(i) for i in range(len(cams))]
+        views = [cache.mask_maps(i) for i in range(len(cams))]  # the maps the masks are shaped on
         sel.auto_threshold = text_auto_threshold([sel.similarity(m.feature).float().numpy() for m in views],
                                                  [m.opacity.numpy() > 0.5 for m in views])
         if threshold is None:
