@@ -135,10 +135,9 @@ class ViewCache:
 
     def mask_maps(self, view: int) -> ViewMaps:
         """The maps view `view`'s mask is shaped on: its own size's when held, else at `map_scale`."""
-        if view in self._maps:
-            return self._maps[view]
-        cam = self.cameras[int(view)] if 0 <= int(view) < len(self.cameras) else None
-        s = 1.0 if cam is None else map_scale(int(cam.width[0]), int(cam.height[0]), self.map_side)
+        if view in self._maps or not 0 <= int(view) < len(self.cameras):  # `get` says what is wrong with a view
+            return self.get(view)
+        s = map_scale(int(self.cameras.width[view]), int(self.cameras.height[view]), self.map_side)
         if s >= 1.0:
             return self.get(view)
         if view not in self._small:
@@ -290,22 +289,17 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
         out = [attach(m, s > threshold, v.depth.numpy(), v.opacity.numpy()) for m, s, v in zip(out, np_sims, maps)]
     opacity = [v.opacity.numpy() for v in maps]
-    if sizes is not None:
-        out = [resized(m, hw) > 0.5 for m, hw in zip(out, sizes)]
-        opacity = [resized(o, hw) for o, hw in zip(opacity, sizes)]
+    if sizes is not None:  # bilinear, as the maps are never larger than their views
+        from repaint_nerf.core.scene.loaders.images import resize_image
+
+        out = [m if m.shape == (h, w) else resize_image(m.astype(np.float32), w, h) > 0.5
+               for m, (h, w) in zip(out, sizes)]
+        opacity = [resize_image(o, w, h) for o, (h, w) in zip(opacity, sizes)]
     if parts.image and seeds and images is not None:  # last: the photo decides the outline the geometry left
         from repaint_nerf.core.select.image_edges import snap_masks
 
         out = snap_masks(images, out, [o > MIN_OPACITY for o in opacity])
     return out
-
-
-def resized(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """A map (bool or float (H, W)) as float32 at `size` (H, W), bilinear (itself when the size is its own)."""
-    a = np.asarray(a, np.float32)
-    if a.shape == tuple(size):
-        return a
-    return cv2.resize(a, (int(size[1]), int(size[0])), interpolation=cv2.INTER_LINEAR)
 
 
 def mask_png(mask: np.ndarray) -> bytes:
