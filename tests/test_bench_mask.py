@@ -64,3 +64,41 @@ def test_bench_mask_seeds_must_be_distinct_integers(tmp_path, capsys):
 
     assert main(["bench", "mask", "--seeds", "0,x", "--json", str(tmp_path / "m.json")]) != 0
     assert "--seeds" in capsys.readouterr().err and not (tmp_path / "m.json").exists()
+
+
+def test_bench_mask_shapes_larger_views_on_the_maps_select_shapes_on():
+    """Views larger than the Evaluator's `map_side` are shaped on maps of that side, as `select` shapes them (the
+    patch's training view at its own size), and their masks come out at the views' size: the figures then score
+    what `select` writes, and the clean-up still drops the look-alike."""
+    from repaint_nerf.core.bench.mask import Evaluator, default_parts, evaluate, iou
+    from repaint_nerf.core.scene.cameras import Cameras, look_at
+    from repaint_nerf.core.select.masks import ViewCache, masks_for_views
+    from repaint_nerf.core.select.query import Patch
+
+    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
+    field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
+    train = _ring_cameras(4, 128)
+    f = 0.5 * 128 / math.tan(0.45)
+    test = Cameras.create(np.stack([look_at((2.6 * math.cos(a), 2.6 * math.sin(a), 1.5), (0, 0, 0))
+                                    for a in (1.0, 2.4, 3.9, 5.3)]), f, f, 64, 64, 128, 128)
+    gts = [_ball_gt(test, i, centers[0], 0.22).numpy() for i in range(4)]
+    train_gts = [_ball_gt(train, i, centers[0], 0.22).numpy() for i in range(len(train))]
+    ys, xs = np.nonzero(train_gts[0])
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    patch = Patch(0, cx - 2, cy - 2, cx + 3, cy + 3)
+    ev = Evaluator(field, None, train, test, map_side=64)
+    auto = ev.auto_threshold(patch)
+    both, _ = ev.all_masks(patch, (auto,), default_parts(ev))
+    test_masks, train_masks = both[auto]
+    assert all(m.shape == (128, 128) for m in test_masks + train_masks)
+    assert [ev.train_cache.mask_maps(i, held=False).depth.shape[0] for i in range(4)] == [64] * 4
+    assert [ev.test_mask_maps(i).depth.shape[0] for i in range(4)] == [64] * 4
+    # the ball is ~10 px across on the 64-px maps: its outline moves by up to a map pixel (no photo to snap it to)
+    assert iou(test_masks, gts) > 0.85 and iou(train_masks, train_gts) > 0.85
+    cache = ViewCache(field, None, train, map_side=64)  # what `select` writes from the same patch
+    sel = ev.selection(patch)
+    cache.get(0)
+    written = masks_for_views(field, None, train, sel, auto, cache=cache, parts=default_parts(ev))
+    assert iou(train_masks, written) > 0.99  # shaped on the full-size maps they agree at 0.94
+    res = evaluate(ev, patch, gts, train_gts)
+    assert res["iou"] > 0.85 and res["no_geometry"]["iou"] < 0.75 and res["editor"]["iou"] > 0.8

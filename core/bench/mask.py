@@ -114,16 +114,35 @@ class Evaluator:
     """Masks of the test views for one patch query on the current field, at any threshold and with any
     geometry parts. The geometry runs over the test views and every training view, as `select` runs it over the
     training views: the patch seeds its own training view, and the training views' masks (what `select` writes
-    for the repaint) come out beside the test views' (held out: scored against ground truth the field never saw)."""
+    for the repaint) come out beside the test views' (held out: scored against ground truth the field never saw).
+    As in `select`, views larger than `map_side` are shaped on maps of that long side (the patch's own view at its
+    size) and their masks come out at the view's size; the editor's way votes on maps of `VOTE_SIDE`, as the
+    Engine renders its voters."""
 
-    def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None, render_opts=None):
-        from repaint_nerf.core.select.masks import ViewCache, render_view_maps
+    def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None, render_opts=None,
+                 map_side: int | None = None):
+        from repaint_nerf.core.select.masks import MAP_SIDE, ViewCache, render_view_maps
 
         self.test = [render_view_maps(field, grid, test_cams, i, render_opts) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
         self.train_images, self.test_images = train_images, test_images  # the photos, for the image part
         # the training views' maps, as `select` caches them (at the sample budget the field was trained with)
-        self.train_cache = ViewCache(field, grid, train_cams, render_opts=render_opts)
+        self.map_side = MAP_SIDE if map_side is None else int(map_side)
+        self.render_opts = render_opts
+        self.train_cache = ViewCache(field, grid, train_cams, render_opts=render_opts, map_side=self.map_side)
+        self._test_small: dict[int, object] = {}
+
+    def test_mask_maps(self, view: int):
+        """Test view `view`'s maps its mask is shaped on: at most `map_side` px on the long side."""
+        from repaint_nerf.core.select.masks import map_scale, render_view_maps
+
+        s = map_scale(int(self.test_cams.width[view]), int(self.test_cams.height[view]), self.map_side)
+        if s >= 1.0:
+            return self.test[view]
+        if view not in self._test_small:
+            self._test_small[view] = render_view_maps(self.field, self.grid, self.test_cams, view, self.render_opts,
+                                                      scale=s)
+        return self._test_small[view]
 
     def train_maps(self, view: int):
         return self.train_cache.get(view)
@@ -141,17 +160,23 @@ class Evaluator:
 
         return selection_auto_threshold(self.selection(patch), self.train_cache, patch.view)
 
-    def _with_training_views(self, test_views: list[int]) -> tuple[list, object, list | None]:
-        """(maps, cameras, photos or None) of test views `test_views` followed by every training view: the views
-        `select` shapes masks over, with the held-out ones in front."""
+    def _with_training_views(self, test_views: list[int], patch_view: int | None = None
+                             ) -> tuple[list, object, list | None, list[tuple[int, int]]]:
+        """(maps, cameras at the maps' size, photos or None, the views' (H, W)) of test views `test_views` followed
+        by every training view: the views `select` shapes masks over, with the held-out ones in front; each on the
+        maps `select` shapes it on (training view `patch_view` at its own size)."""
         from repaint_nerf.core.scene.cameras import Cameras
+        from repaint_nerf.core.select.masks import map_cameras
 
-        maps = [self.test[i] for i in test_views] + [self.train_maps(i) for i in range(len(self.train_cams))]
+        train = [self.train_maps(i) if i == patch_view else self.train_cache.mask_maps(i, held=False)
+                 for i in range(len(self.train_cams))]  # another object's patch view is not held at its size
+        maps = [self.test_mask_maps(i) for i in test_views] + train
         test_cams = self.test_cams.to("cpu")[torch.tensor(test_views, dtype=torch.long)]
         cams = Cameras.cat([test_cams, self.train_cams.to("cpu")])
+        sizes = [(int(h), int(w)) for h, w in zip(cams.height.tolist(), cams.width.tolist())]
         images = None if self.test_images is None or self.train_images is None else \
             [self.test_images[i] for i in test_views] + list(self.train_images)
-        return maps, cams, images
+        return maps, map_cameras(cams, maps), images, sizes
 
     def all_masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: (test views' masks, training views' masks)} (numpy bool), test similarity maps)."""
@@ -160,13 +185,14 @@ class Evaluator:
 
         sel = self.selection(patch)
         n = len(self.test)
-        maps, cams, images = self._with_training_views(list(range(n)))
+        maps, cams, images, sizes = self._with_training_views(list(range(n)), patch.view)
         sims = [sel.similarity(m.feature) for m in maps]
         view = n + patch.view
         pixels = patch_pixels(tuple(maps[view].depth.shape), patch)
         out = {}
         for t in thresholds:  # as select seeds them (masks.selection_seeds)
-            m = shaped_masks(sims, maps, cams, patch_seeds(view, pixels, maps, cams, sims, t), t, parts, images)
+            m = shaped_masks(sims, maps, cams, patch_seeds(view, pixels, maps, cams, sims, t), t, parts, images,
+                             sizes)
             out[t] = (m[:n], m[n:])
         return out, sims[:n]
 
@@ -175,8 +201,7 @@ class Evaluator:
         patch once their maps are rendered (similarity, geometry, clean-up, photo edges; the cost of a Repaint's masks)."""
         from repaint_nerf.core.select.masks import masks_for_views
 
-        for i in range(len(self.train_cams)):
-            self.train_maps(i)
+        self._with_training_views([], patch.view)  # the maps it reads, rendered before the clock starts
         t0 = time.perf_counter()
         masks_for_views(self.field, self.grid, self.train_cams, self.selection(patch), threshold,
                         cache=self.train_cache, parts=parts,
@@ -193,8 +218,9 @@ class Evaluator:
         view: its surface points seed the others, Engine.select), masks of the other test views, made with the
         training views as `select` makes them, at the patch's automatic threshold, once per geometry parts of
         `parts_list`. Returns (masks of the other test views per parts, the threshold)."""
+        from repaint_nerf.core.engine import VOTE_SIDE
         from repaint_nerf.core.select.geometry import anchor_views
-        from repaint_nerf.core.select.masks import selection_seeds, shaped_masks
+        from repaint_nerf.core.select.masks import map_cameras, selection_seeds, shaped_masks
         from repaint_nerf.core.select.selection import Selection
 
         m = self.test[view]
@@ -204,22 +230,24 @@ class Evaluator:
                                 self.test_cams.to("cpu")[view], m.edge_depth().numpy())
         voters = anchor_views(sel.anchor_points(), self.train_cams)  # as Engine.refine_threshold, a frame later
         if voters:
-            auto = sel.refine_auto_threshold(auto, [self.train_maps(i) for i in voters],
-                                             self.train_cams.to("cpu")[torch.tensor(voters, dtype=torch.long)])
+            vm = [self.train_cache.mask_maps(i, VOTE_SIDE) for i in voters]
+            auto = sel.refine_auto_threshold(
+                auto, vm, map_cameras(self.train_cams.to("cpu")[torch.tensor(voters, dtype=torch.long)], vm))
         others = [i for i in range(len(self.test)) if i != view]
-        maps, cams, images = self._with_training_views(others)
+        maps, cams, images, sizes = self._with_training_views(others)
         sims = [sel.similarity(v.feature) for v in maps]
         seeds = selection_seeds(sel, maps, cams)  # the anchors only: the rect's view (-1) is none of these
         k = len(others)
-        return [shaped_masks(sims, maps, cams, seeds, auto, parts, images)[:k] for parts in parts_list], auto
+        return [shaped_masks(sims, maps, cams, seeds, auto, parts, images, sizes)[:k] for parts in parts_list], auto
 
 
 def default_parts(ev: Evaluator):
     """What a selection's default geometry gives on this field: the default parts, fitted to its depth (fit_parts)."""
     from repaint_nerf.core.select.geometry import fit_parts
 
-    return fit_parts(parts_variants()["default"], [m.depth.numpy() for m in ev.test],
-                     [m.opacity.numpy() for m in ev.test])
+    maps = [ev.test_mask_maps(i) for i in range(len(ev.test))]  # as select fits them, on the maps it shapes on
+    return fit_parts(parts_variants()["default"], [m.depth.numpy() for m in maps],
+                     [m.opacity.numpy() for m in maps])
 
 
 def editor_iou(ev: Evaluator, gts: list[np.ndarray]) -> dict:
@@ -443,6 +471,8 @@ def montage_row(trainer, ev, sims, masks, gts, n: int = 3) -> np.ndarray:
         img = (rgb.clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
         sim = cv2.applyColorMap((np.clip(sims[i].float().numpy(), 0, 1) * 255).astype(np.uint8),
                                 cv2.COLORMAP_VIRIDIS)[..., ::-1]
+        if sim.shape[:2] != img.shape[:2]:  # a view larger than the maps its mask was shaped on
+            sim = cv2.resize(sim, (img.shape[1], img.shape[0]), interpolation=cv2.INTER_NEAREST)
         m = np.repeat((masks[i] * 255).astype(np.uint8)[..., None], 3, 2)
         g = np.repeat((gts[i] * 255).astype(np.uint8)[..., None], 3, 2)
         sep = np.full((img.shape[0], 2, 3), 128, np.uint8)

@@ -117,7 +117,7 @@ class ViewCache:
         self.render_opts = render_opts
         self.map_side = int(map_side)
         self._maps: dict[int, ViewMaps] = {}
-        self._small: dict[int, ViewMaps] = {}
+        self._small: dict[tuple[int, int], ViewMaps] = {}
 
     def reset(self, token=None) -> None:
         self.token = token
@@ -125,7 +125,7 @@ class ViewCache:
         self._small.clear()
 
     def __len__(self) -> int:
-        return len(self._maps.keys() | self._small.keys())
+        return len(self._maps.keys() | {view for view, _ in self._small})
 
     def get(self, view: int) -> ViewMaps:
         """The maps of training view `view` at its own size, rendered on first use."""
@@ -133,16 +133,19 @@ class ViewCache:
             self._maps[view] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts)
         return self._maps[view]
 
-    def mask_maps(self, view: int) -> ViewMaps:
-        """The maps view `view`'s mask is shaped on: its own size's when held, else at `map_scale`."""
-        if view in self._maps or not 0 <= int(view) < len(self.cameras):  # `get` says what is wrong with a view
+    def mask_maps(self, view: int, side: int | None = None, held: bool = True) -> ViewMaps:
+        """The maps view `view`'s mask is shaped on: its own size's when held (and `held`), else at `map_scale`
+        for a long side of at most `side` px (default: the cache's `map_side`)."""
+        if (held and view in self._maps) or not 0 <= int(view) < len(self.cameras):  # `get` says what is wrong
             return self.get(view)
-        s = map_scale(int(self.cameras.width[view]), int(self.cameras.height[view]), self.map_side)
+        side = self.map_side if side is None else int(side)
+        s = map_scale(int(self.cameras.width[view]), int(self.cameras.height[view]), side)
         if s >= 1.0:
             return self.get(view)
-        if view not in self._small:
-            self._small[view] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts, scale=s)
-        return self._small[view]
+        if (view, side) not in self._small:
+            self._small[view, side] = render_view_maps(self.field, self.grid, self.cameras, view, self.render_opts,
+                                                       scale=s)
+        return self._small[view, side]
 
 
 def map_scale(width: int, height: int, side: int = MAP_SIDE) -> float:
