@@ -466,7 +466,8 @@ class Engine:
         self._save_reconstruction()
         self.edit = RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
                                    guidance=guidance, prompt=prompt, bg_prompt=bg_prompt, config=config,
-                                   device=self.device, sd_path=sd_path, clip_path=clip_path, color=color)
+                                   device=self.device, sd_path=sd_path, clip_path=clip_path, color=color,
+                                   trained_samples=int(getattr(self.trainer.cfg, "max_samples", 0)) or None)
         self.stage1_frozen = True
         self.paused = False
         return {"started": time.time(), "guidance": self.edit.kind, "steps": int(self.edit.cfg.steps)}

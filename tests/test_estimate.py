@@ -99,16 +99,22 @@ def test_trainer_reports_steps_and_time_left_and_times_without_changing_the_fiel
 def test_cli_prints_the_estimate_and_time_left(tmp_path, capsys, monkeypatch):
     import repaint_nerf.app.commands.repaint as cmd
     from repaint_nerf.app.cli import main
+    from repaint_nerf.core.train.checkpoint import Checkpoint
+    from repaint_nerf.core.train.header import CheckpointHeader
     from repaint_nerf.core.workspace.workspace import Workspace
 
     scene, masks = make_scene()
     field = make_field()
     ws = Workspace.create(tmp_path / "ws")
-    monkeypatch.setattr(cmd, "open_workspace", lambda path, device=None: (ws, scene, field, make_grid(field), masks))
+    monkeypatch.setattr(cmd, "open_workspace",
+                        lambda path, device=None: (ws, scene, field, make_grid(field), masks, 96))
     assert main(["repaint", str(ws.root), "--guidance", "recolor", "--prompt", "make it blue", "--steps", "3"]) == 0
     out = capsys.readouterr().out
     assert "estimated time:" in out and "3 steps x" in out and "timed on this device" in out
     assert "step 3/3" in out and " left)" in out
+    # the edit marched at the field's own budget, and its version renders at it (not the renderer's 1024)
+    header = CheckpointHeader.from_dict(Checkpoint.load(ws.version_path(ws.current_version)).header)
+    assert header.kind == "edit" and header.max_samples == 96
     assert main(["repaint", str(ws.root), "--guidance", "sd", "--prompt", "x", "--sds-resolution", "100"]) == 2
     assert "multiple of 64" in capsys.readouterr().err
 

@@ -281,6 +281,25 @@ def test_cli_bad_input(tmp_path, capsys, monkeypatch):
     assert main(["repaint", str(tmp_path / "missing"), "--guidance", "remove"]) == 2
 
 
+def test_an_edit_marches_at_the_fields_own_sample_budget(scene):
+    """With no budget asked for, an edit marches at the one the field was trained with (what the editor views it
+    at, and bench edit measures edits at), else at the one stage 1 picks for the images: the fixed 512 it had cost
+    2.25x a step of 256 on the demo for the same PSNR. A budget asked for is kept."""
+    from repaint_nerf.core.train.stage1 import sample_budget
+
+    sc, masks = scene
+    field = make_field()
+
+    def budget(**kw):
+        return RepaintTrainer(sc, field, make_grid(field), masks=masks, guidance="recolor", prompt="make it blue",
+                              **kw).cfg.max_samples
+
+    assert RepaintConfig().max_samples == 0
+    assert budget(trained_samples=96) == 96
+    assert budget() == sample_budget(max(sc.train.images[0].shape[:2]))
+    assert budget(trained_samples=96, max_samples=300) == 300
+
+
 def test_one_set_of_defaults_for_the_cli_the_editor_and_the_trainer():
     """The `repaint` flags default from RepaintConfig, the editor holds a RepaintConfig, and the CLIP weight's
     default is one rule: the official 0.01 with Stable Diffusion, 0 for the offline and analytic edits."""
@@ -324,6 +343,7 @@ def test_editor_repaint_fields_reach_the_trainer(scene_factory, tmp_path, tmp_pa
     assert (tr.kind, tr.prompt, tr.bg_prompt, tr.cfg.steps) == ("sd", "a blue ball", "green leaves", 4)
     assert tr.cfg.lambda_clip == 0.01 and tr.clip.prompt == "green leaves" and tr.clip.path == str(clip_path)
     assert tr.guidance.sd is not None
+    assert tr.cfg.max_samples == engine.trainer.cfg.max_samples > 0  # the budget the editor views the field at
     calls = []
     engine.train_for(0.0, interlude=lambda: calls.append(tr.step_count))  # the worker's renders, within the step
     assert tr.step_count == 1 and np.isfinite(tr.history[-1]["clip"]) and calls and set(calls) == {0}

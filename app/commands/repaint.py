@@ -132,7 +132,8 @@ def check_args(args: argparse.Namespace) -> None:
 
 
 def open_workspace(path: str, device=None):
-    """(workspace, scene, field, grid, masks) of a workspace's current version and its selection's masks."""
+    """(workspace, scene, field, grid, masks, the field's sample budget (CheckpointHeader.trained_samples)) of a
+    workspace's current version and its selection's masks."""
     from repaint_nerf.core.errors import WorkspaceError
     from repaint_nerf.core.select.masks import load_masks
     from repaint_nerf.core.session import open_trained, trained_path
@@ -145,7 +146,7 @@ def open_workspace(path: str, device=None):
                              hint=f"run `repaint-nerf select {ws.root} --view I --patch x0,y0,x1,y1` first")
     masks = load_masks(ws.masks_dir)
     t = open_trained(ws, device)
-    return ws, t.scene, t.field, t.grid, masks
+    return ws, t.scene, t.field, t.grid, masks, t.header.trained_samples
 
 
 def run(args: argparse.Namespace) -> int:
@@ -162,10 +163,10 @@ def run(args: argparse.Namespace) -> int:
         settings = Workspace.open(args.workspace).settings
         for kind in needed:
             resolve_model_path(kind, {"sd": args.sd_path, "clip": args.clip_path}[kind], settings)
-    ws, scene, field, grid, masks = open_workspace(args.workspace, args.device)
+    ws, scene, field, grid, masks, samples = open_workspace(args.workspace, args.device)
     trainer = RepaintTrainer(scene, field, grid, workspace=ws, masks=masks, guidance=args.guidance,
                              prompt=args.prompt, bg_prompt=args.bg_prompt, config=cfg, sd_path=args.sd_path,
-                             clip_path=args.clip_path, color=args.color)
+                             clip_path=args.clip_path, color=args.color, trained_samples=samples)
     h, w = trainer.size
     print(f"repaint ({trainer.kind}) of {sum(int(m.any()) for m in masks)}/{len(masks)} masked views at {w}x{h}, "
           f"{cfg.steps} steps on {trainer.device}")

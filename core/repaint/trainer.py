@@ -41,7 +41,7 @@ from repaint_nerf.core.train.checkpoint import Checkpoint, split_state
 from repaint_nerf.core.train.health import SpikeDetector
 from repaint_nerf.core.train.metrics import mse_to_psnr
 from repaint_nerf.core.train.schedule import LRSchedule
-from repaint_nerf.core.train.stage1 import target_image
+from repaint_nerf.core.train.stage1 import sample_budget, target_image
 
 CPU_RESOLUTION, CUDA_RESOLUTION = 128, 400  # default caps of the render's long side
 
@@ -98,7 +98,8 @@ class RepaintTrainer:
                  guidance: Any = None, prompt: str = "", bg_prompt: str = "", backend: str | None = None,
                  config: RepaintConfig | None = None, device: torch.device | str | None = None,
                  sd_path=None, clip_path=None, color=None, negative_prompt: str = "",
-                 on_snapshot: Callable[[dict], Any] | None = None, **overrides):
+                 on_snapshot: Callable[[dict], Any] | None = None, trained_samples: int | None = None,
+                 **overrides):
         self.scene, self.field, self.grid, self.workspace = scene, field, grid, workspace
         self.prompt, self.bg_prompt = prompt, bg_prompt
         cfg = config or RepaintConfig()
@@ -106,6 +107,9 @@ class RepaintTrainer:
         if unknown:
             raise TypeError(f"unknown repaint options {sorted(unknown)}")
         self.cfg = dataclasses.replace(cfg, **overrides)
+        if self.cfg.max_samples <= 0:  # the budget the field was trained with, else the one stage 1 would pick
+            side = max(max(int(im.shape[0]), int(im.shape[1])) for im in scene.train.images)
+            self.cfg.max_samples = int(trained_samples) if trained_samples else sample_budget(side)
         kind = backend if guidance is None else guidance
         spec = registry.resolve(kind, prompt) if isinstance(kind, str) else None
         self.kind = spec.name if spec is not None else type(kind).__name__

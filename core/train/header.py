@@ -114,11 +114,20 @@ class CheckpointHeader:
         return int(self.field_config.get("feature_dim", 0) or 0)
 
     @property
+    def trained_samples(self) -> int | None:
+        """The full sample budget (steps across the cube's diagonal) stage 1 trained the field with, or an edit
+        version's edit marched at; None when not recorded."""
+        recorded = (self.edit.config if self.edit is not None else {}) if self.kind == EDIT else \
+            (self.train_config or {})
+        value = recorded.get("max_samples")
+        return int(value) if value and int(value) > 0 else None
+
+    @property
     def max_samples(self) -> int:
         """The sample budget it was trained with at its step (1024, the renderer's default, when not recorded);
         early stage-1 steps march coarser (stage1.march_budget)."""
         tc = self.train_config or {}
-        full = int(tc.get("max_samples") or 1024)
+        full = self.trained_samples or 1024
         if self.kind != STAGE1 or not tc.get("early_max_samples"):
             return full
         from repaint_nerf.core.train.stage1 import march_budget
