@@ -9,24 +9,31 @@ import numpy as np
 from test_selection import Balls, _ball_gt, _ring_cameras
 
 
-def test_bench_mask_figures_and_the_editors_way():
-    from repaint_nerf.app.bench.mask import line
-    from repaint_nerf.core.bench.mask import Evaluator, evaluate
+def _balls(size: int, half: int):
+    """The look-alike balls seen by 4 training and 4 test views of `size` px: (field, training cameras, test
+    cameras, test and training ground truth of the first ball, a patch of 2 * `half` + 1 px on it in view 0)."""
     from repaint_nerf.core.scene.cameras import Cameras, look_at
     from repaint_nerf.core.select.query import Patch
 
     centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
     field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
-    train = _ring_cameras(4, 32)
-    f = 0.5 * 32 / math.tan(0.45)
+    train = _ring_cameras(4, size)
+    f = 0.5 * size / math.tan(0.45)
     test = Cameras.create(np.stack([look_at((2.6 * math.cos(a), 2.6 * math.sin(a), 1.5), (0, 0, 0))
-                                    for a in (1.0, 2.4, 3.9, 5.3)]), f, f, 16, 16, 32, 32)
+                                    for a in (1.0, 2.4, 3.9, 5.3)]), f, f, size / 2, size / 2, size, size)
     gts = [_ball_gt(test, i, centers[0], 0.22).numpy() for i in range(4)]
-    g0 = _ball_gt(train, 0, centers[0], 0.22).numpy()
-    ys, xs = np.nonzero(g0)
-    cy, cx = int(np.median(ys)), int(np.median(xs))
     train_gts = [_ball_gt(train, i, centers[0], 0.22).numpy() for i in range(len(train))]
-    res = evaluate(Evaluator(field, None, train, test), Patch(0, cx - 1, cy - 1, cx + 2, cy + 2), gts, train_gts)
+    ys, xs = np.nonzero(train_gts[0])
+    cy, cx = int(np.median(ys)), int(np.median(xs))
+    return field, train, test, gts, train_gts, Patch(0, cx - half, cy - half, cx + half + 1, cy + half + 1)
+
+
+def test_bench_mask_figures_and_the_editors_way():
+    from repaint_nerf.app.bench.mask import line
+    from repaint_nerf.core.bench.mask import Evaluator, evaluate
+
+    field, train, test, gts, train_gts, patch = _balls(32, 1)
+    res = evaluate(Evaluator(field, None, train, test), patch, gts, train_gts)
     for k in ("iou", "iou_fixed", "best_iou", "iou_before"):
         assert 0.0 <= res[k] <= 1.0, k
     assert res["best_iou"] == max(res["iou_by_threshold"].values())
@@ -71,21 +78,9 @@ def test_bench_mask_shapes_larger_views_on_the_maps_select_shapes_on():
     patch's training view at its own size), and their masks come out at the views' size: the figures then score
     what `select` writes, and the clean-up still drops the look-alike."""
     from repaint_nerf.core.bench.mask import Evaluator, default_parts, evaluate, iou
-    from repaint_nerf.core.scene.cameras import Cameras, look_at
     from repaint_nerf.core.select.masks import ViewCache, masks_for_views
-    from repaint_nerf.core.select.query import Patch
 
-    centers = [(0.35, 0.0, 0.0), (-0.4, -0.3, 0.0), (-0.2, 0.45, 0.0)]
-    field = Balls(centers, 0.22, [[1, 0, 0], [1, 0, 0], [0, 1, 0]])
-    train = _ring_cameras(4, 128)
-    f = 0.5 * 128 / math.tan(0.45)
-    test = Cameras.create(np.stack([look_at((2.6 * math.cos(a), 2.6 * math.sin(a), 1.5), (0, 0, 0))
-                                    for a in (1.0, 2.4, 3.9, 5.3)]), f, f, 64, 64, 128, 128)
-    gts = [_ball_gt(test, i, centers[0], 0.22).numpy() for i in range(4)]
-    train_gts = [_ball_gt(train, i, centers[0], 0.22).numpy() for i in range(len(train))]
-    ys, xs = np.nonzero(train_gts[0])
-    cy, cx = int(np.median(ys)), int(np.median(xs))
-    patch = Patch(0, cx - 2, cy - 2, cx + 3, cy + 3)
+    field, train, test, gts, train_gts, patch = _balls(128, 2)
     ev = Evaluator(field, None, train, test, map_side=64)
     auto = ev.auto_threshold(patch)
     both, _ = ev.all_masks(patch, (auto,), default_parts(ev))
