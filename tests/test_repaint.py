@@ -284,7 +284,7 @@ def test_cli_bad_input(tmp_path, capsys, monkeypatch):
 def test_an_edit_marches_at_the_fields_own_sample_budget(scene):
     """With no budget asked for, an edit marches at the one the field was trained with (what the editor views it
     at, and bench edit measures edits at), else at the one stage 1 picks for the images: the fixed 512 it had cost
-    2.25x a step of 256 on the demo for the same PSNR. A budget asked for is kept."""
+    1.9-2.2x a step of 256. A budget asked for is kept."""
     from repaint_nerf.core.train.stage1 import sample_budget
 
     sc, masks = scene
