@@ -183,6 +183,11 @@ class Engine:
                 "step": int(self.trainer.step_count), "notes": list(self.notes), "device": str(self.device),
                 "history": self.trainer.history.copy()}  # the loss/PSNR curve so far, kept in the checkpoint
 
+    @property
+    def sample_budget(self) -> int:
+        """Steps across the field cube's diagonal the field is trained at, and so viewed, selected and edited at."""
+        return int(getattr(self.trainer.cfg, "max_samples", 0) or 1024)
+
     def _need_scene(self) -> None:
         if self.scene is None:
             raise UserError("no scene is loaded", hint="open a dataset, a photo folder or the demo scene first")
@@ -260,7 +265,7 @@ class Engine:
         if capped:
             scale = finest
         opts = RenderOptions(outputs=want, background=self.trainer.eval_background(),
-                             max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)),
+                             max_samples=self.sample_budget,
                              t_threshold=DISPLAY_T_THRESHOLD, step_stride=stride,
                              feature_first_surface=FIRST_SURFACE)  # as the selection's views read it
         if cancel is not None:  # interactive: smaller rounds, so a camera move cancels within ~20 ms, not ~80
@@ -356,7 +361,7 @@ class Engine:
         side = max(int(voters.width.max()), int(voters.height.max()))
         if side > VOTE_SIDE:
             voters = voters.scaled(VOTE_SIDE / side)
-        opts = RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+        opts = RenderOptions(max_samples=self.sample_budget)
         was_training = self.field.training
         self.field.eval()
         maps = []
@@ -420,7 +425,7 @@ class Engine:
         try:
             with torch.no_grad():
                 cams = self.scene.field_cameras("train").to(self.device)
-                opts = RenderOptions(max_samples=int(getattr(self.trainer.cfg, "max_samples", 1024)))
+                opts = RenderOptions(max_samples=self.sample_budget)
                 masks = masks_for_views(self.field, self.grid, cams, self.selection, threshold,
                                             workspace=self.workspace, cache=ViewCache(self.field, self.grid, cams,
                                                                                           render_opts=opts),
@@ -467,7 +472,7 @@ class Engine:
         self.edit = RepaintTrainer(self.scene, self.field, self.grid, workspace=self.workspace, masks=self.masks,
                                    guidance=guidance, prompt=prompt, bg_prompt=bg_prompt, config=config,
                                    device=self.device, sd_path=sd_path, clip_path=clip_path, color=color,
-                                   trained_samples=int(getattr(self.trainer.cfg, "max_samples", 0)) or None)
+                                   trained_samples=self.sample_budget)
         self.stage1_frozen = True
         self.paused = False
         return {"started": time.time(), "guidance": self.edit.kind, "steps": int(self.edit.cfg.steps)}
