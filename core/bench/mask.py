@@ -121,28 +121,19 @@ class Evaluator:
 
     def __init__(self, field, grid, train_cams, test_cams, train_images=None, test_images=None, render_opts=None,
                  map_side: int | None = None):
-        from repaint_nerf.core.select.masks import MAP_SIDE, ViewCache, render_view_maps
+        from repaint_nerf.core.select.masks import MAP_SIDE, ViewCache
 
-        self.test = [render_view_maps(field, grid, test_cams, i, render_opts) for i in range(len(test_cams))]
+        side = MAP_SIDE if map_side is None else int(map_side)
+        # the views' maps, as `select` caches them (at the sample budget the field was trained with)
+        self.train_cache = ViewCache(field, grid, train_cams, render_opts=render_opts, map_side=side)
+        self._test_cache = ViewCache(field, grid, test_cams, render_opts=render_opts, map_side=side)
+        self.test = [self._test_cache.get(i) for i in range(len(test_cams))]
         self.field, self.grid, self.train_cams, self.test_cams = field, grid, train_cams, test_cams
         self.train_images, self.test_images = train_images, test_images  # the photos, for the image part
-        # the training views' maps, as `select` caches them (at the sample budget the field was trained with)
-        self.map_side = MAP_SIDE if map_side is None else int(map_side)
-        self.render_opts = render_opts
-        self.train_cache = ViewCache(field, grid, train_cams, render_opts=render_opts, map_side=self.map_side)
-        self._test_small: dict[int, object] = {}
 
     def test_mask_maps(self, view: int):
-        """Test view `view`'s maps its mask is shaped on: at most `map_side` px on the long side."""
-        from repaint_nerf.core.select.masks import map_scale, render_view_maps
-
-        s = map_scale(int(self.test_cams.width[view]), int(self.test_cams.height[view]), self.map_side)
-        if s >= 1.0:
-            return self.test[view]
-        if view not in self._test_small:
-            self._test_small[view] = render_view_maps(self.field, self.grid, self.test_cams, view, self.render_opts,
-                                                      scale=s)
-        return self._test_small[view]
+        """Test view `view`'s maps its mask is shaped on: at most the cache's `map_side` px on the long side."""
+        return self._test_cache.mask_maps(view, held=False)
 
     def train_maps(self, view: int):
         return self.train_cache.get(view)
@@ -173,10 +164,9 @@ class Evaluator:
         maps = [self.test_mask_maps(i) for i in test_views] + train
         test_cams = self.test_cams.to("cpu")[torch.tensor(test_views, dtype=torch.long)]
         cams = Cameras.cat([test_cams, self.train_cams.to("cpu")])
-        sizes = [(int(h), int(w)) for h, w in zip(cams.height.tolist(), cams.width.tolist())]
         images = None if self.test_images is None or self.train_images is None else \
             [self.test_images[i] for i in test_views] + list(self.train_images)
-        return maps, map_cameras(cams, maps), images, sizes
+        return maps, map_cameras(cams, maps), images, cams.sizes()
 
     def all_masks(self, patch, thresholds, parts) -> tuple[dict, list]:
         """({threshold: (test views' masks, training views' masks)} (numpy bool), test similarity maps)."""

@@ -59,6 +59,10 @@ class Cameras:
     def __len__(self) -> int:
         return int(self.c2w.shape[0])
 
+    def sizes(self) -> list[tuple[int, int]]:
+        """(H, W) of each view, in pixels."""
+        return [(int(h), int(w)) for h, w in zip(self.height.tolist(), self.width.tolist())]
+
     def __getitem__(self, idx) -> "Cameras":
         if isinstance(idx, int):
             idx = [idx]

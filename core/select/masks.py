@@ -216,8 +216,7 @@ def masks_for_views(field, grid, cameras, selection, threshold: float | None = N
     parts = fit_parts(asked, [m.depth.numpy() for m in maps], [m.opacity.numpy() for m in maps])
     if images is None:  # what ran, for the index: the photo's edges need the photos
         parts = replace(parts, image=False)
-    sizes = [(int(h), int(w)) for h, w in zip(cameras.height.tolist(), cameras.width.tolist())]
-    out = shaped_masks(sims, maps, cams, seeds, t, parts, images, sizes)
+    out = shaped_masks(sims, maps, cams, seeds, t, parts, images, cameras.sizes())
     if refine is not None:
         out = [np.asarray(m, bool) for m in refine(out)]
     if workspace is not None:
@@ -275,6 +274,7 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     pixels [(view, bool (H, W))] (`selection_seeds`), brought to the views' `sizes` ((H, W) each; None: the maps')
     and, given the views' photos, re-decided along their edges (core.select.image_edges); the one path the CLI,
     the editor and bench mask share. `cameras` are the views' at their maps' size (`map_cameras`)."""
+    from repaint_nerf.core.scene.loaders.images import resize_image
     from repaint_nerf.core.select.cleanup3d import cleanup_masks
     from repaint_nerf.core.select.geometry import MIN_OPACITY, attach, geometric_masks
 
@@ -291,16 +291,15 @@ def shaped_masks(sims: list[Tensor], maps: list[ViewMaps], cameras, seeds: list,
     out = [m.cpu().numpy().astype(bool) for m in masks]
     if parts.attach and seeds:  # last: the clean-up drops silhouette pixels, whose depth blends two surfaces
         out = [attach(m, s > threshold, v.depth.numpy(), v.opacity.numpy()) for m, s, v in zip(out, np_sims, maps)]
-    opacity = [v.opacity.numpy() for v in maps]
     if sizes is not None:  # bilinear, as the maps are never larger than their views
-        from repaint_nerf.core.scene.loaders.images import resize_image
-
         out = [m if m.shape == (h, w) else resize_image(m.astype(np.float32), w, h) > 0.5
                for m, (h, w) in zip(out, sizes)]
-        opacity = [resize_image(o, w, h) for o, (h, w) in zip(opacity, sizes)]
     if parts.image and seeds and images is not None:  # last: the photo decides the outline the geometry left
         from repaint_nerf.core.select.image_edges import snap_masks
 
+        opacity = [v.opacity.numpy() for v in maps]
+        if sizes is not None:
+            opacity = [resize_image(o, w, h) for o, (h, w) in zip(opacity, sizes)]
         out = snap_masks(images, out, [o > MIN_OPACITY for o in opacity])
     return out
 

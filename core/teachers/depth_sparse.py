@@ -54,7 +54,7 @@ def depth_from_points(points: np.ndarray, cameras: Cameras, visibility: list | N
     """DepthPriors for every camera from SfM points (optionally with per-image visible point indices)."""
     priors = [project_points(points, cameras, i, None if visibility is None else visibility[i], **kwargs)
               for i in range(len(cameras))]
-    return DepthPriors(priors, _sizes(cameras), source="sfm-points")
+    return DepthPriors(priors, cameras.sizes(), source="sfm-points")
 
 
 def triangulate_known_poses(images: list[np.ndarray], cameras: Cameras, neighbours: int = 6,
@@ -127,7 +127,7 @@ def triangulate_known_poses(images: list[np.ndarray], cameras: Cameras, neighbou
         idx, z = np.array(idx, dtype=np.int64), np.array(z, np.float32)
         uv = kps[i][idx] if idx.size else np.zeros((0, 2))
         priors.append(SparseDepth(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32), z))
-    return DepthPriors(priors, _sizes(cameras), source="triangulated")
+    return DepthPriors(priors, cameras.sizes(), source="triangulated")
 
 
 def _composite(im: np.ndarray, background) -> np.ndarray:
@@ -173,10 +173,6 @@ def _depth_and_error(x3: np.ndarray, proj: np.ndarray, w2c: np.ndarray, uv: np.n
     xh = np.concatenate([x3, np.ones((len(x3), 1))], 1) @ proj.T
     err = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - uv, axis=1)
     return pc[:, 2], err
-
-
-def _sizes(cameras: Cameras) -> list[tuple[int, int]]:
-    return [(int(h), int(w)) for h, w in zip(cameras.height.tolist(), cameras.width.tolist())]
 
 
 def depth_for_scene(scene, split: str = "train") -> DepthPriors:
