@@ -52,6 +52,69 @@ def test_in_opaque_photos_a_few_points_beyond_the_cameras_mean_unbounded():
     assert kind_from_layout(c2w, pts, opaque=True)[0] == "bounded"  # nothing beyond: an object on a plain backdrop
 
 
+def _stub_scene(c2w, pts, focal: float, alpha: bool = False):
+    """What detect_kind reads of a scene: 100-px training views at `focal`, opaque or cut-out images, points."""
+    from repaint_nerf.core.scene.cameras import Cameras
+    from repaint_nerf.core.scene.scene import SceneSplit
+
+    class S:
+        kind, extra = "bounded", {}
+
+    s = S()
+    s.points = pts
+    image = np.full((100, 100, 4 if alpha else 3), 255, np.uint8)
+    if alpha:
+        image[:10, :10, 3] = 0
+    s.splits = {"train": SceneSplit(Cameras.create(c2w, focal, focal, 50, 50, 100, 100), [image] * len(c2w),
+                                    [f"{i}.png" for i in range(len(c2w))])}
+    return s
+
+
+def _pixels_past_box_reference(cams, lo, hi, grid):
+    """One ray at a time, a plain slab test."""
+    missed = 0
+    for i in range(len(cams)):
+        c2w = cams.c2w[i].double().numpy()
+        fx, fy, cx, cy = (float(t[i]) for t in (cams.fx, cams.fy, cams.cx, cams.cy))
+        w, h = float(cams.width[i]), float(cams.height[i])
+        for r in range(grid):
+            for c in range(grid):
+                u, v = (c + 0.5) / grid * w, (r + 0.5) / grid * h
+                d = c2w[:3, :3] @ np.array([(u - cx) / fx, -(v - cy) / fy, -1.0])
+                o = c2w[:3, 3]
+                t_near, t_far = -np.inf, np.inf
+                for k in range(3):
+                    if abs(d[k]) < 1e-12:
+                        if not lo[k] <= o[k] <= hi[k]:
+                            t_near, t_far = 1.0, 0.0
+                        continue
+                    a, b = sorted(((lo[k] - o[k]) / d[k], (hi[k] - o[k]) / d[k]))
+                    t_near, t_far = max(t_near, a), min(t_far, b)
+                missed += t_far <= t_near or t_far <= 0
+    return missed / (len(cams) * grid * grid)
+
+
+def test_opaque_photos_whose_pixels_look_past_the_points_box_are_unbounded():
+    """Every pixel of a photo shows a surface; where a ray misses the box the points fill, the bounded field has
+    nothing to learn it with. A wide lens around the demo's objects sees past their box: unbounded. A narrow one
+    sees the box alone, and a cut-out (transparent background) needs none of what lies beyond: bounded."""
+    from repaint_nerf.core.scene.kinds import MISS_FRACTION, detect_kind, pixels_past_box
+
+    _, c2w, pts = _layout("demo")
+    wide, narrow = _stub_scene(c2w, pts, 60.0), _stub_scene(c2w, pts, 400.0)
+    lo, hi = pts.min(0), pts.max(0)
+    for scene in (wide, narrow):
+        cams = scene.splits["train"].cameras
+        assert pixels_past_box(cams, lo, hi, grid=6) == pytest.approx(
+            _pixels_past_box_reference(cams, lo, hi, 6), abs=1e-12)
+    kind, why = detect_kind(wide)
+    assert kind == "unbounded" and "of the photos' pixels look past the box the sparse points fill" in why, why
+    kind, why = detect_kind(narrow)
+    assert kind == "bounded" and "0% of the photos' pixels look past" in why, why
+    assert pixels_past_box(narrow.splits["train"].cameras, lo, hi) <= MISS_FRACTION
+    assert detect_kind(_stub_scene(c2w, pts, 60.0, alpha=True))[0] == "bounded"  # a cut-out
+
+
 @pytest.mark.parametrize("preset,far,expected", [("demo", 5.5, "bounded"), ("room360", 7.5, "unbounded")])
 def test_without_points_the_far_depth_decides(preset, far, expected):
     _, c2w, _ = _layout(preset)

@@ -52,6 +52,11 @@ CAPTURES = (
             "a 3D Gaussian Splatting capture whose sparse/0/images.bin and undistorted images/ are absent from the "
             "snapshot; its photos as taken (input/) open through structure-from-motion (93 of 97 registered, about "
             "3.5 minutes on 2 cores, cached)"),
+    Capture("kermit", "snavely/bundler_sfm", "a35a8f589b7b8419f43f9e41553a84522faa6f9e", "examples/kermit",
+            "an object in its room, few photos (a plush on a chair, a dark room behind it)", "photos only: posed by "
+            "our SfM", "11 x 640x480 JPEG (a 2002 Canon PowerShot A10)", "GPL (Bundler's README)",
+            "Bundler's example set: 11 photos along an arc of about 90 degrees, 11 of 11 registered in 6 s; 1% of "
+            "its SfM points lie beyond the cameras, 11% of its pixels look past the box they fill"),
 )
 
 

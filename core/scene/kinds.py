@@ -6,6 +6,8 @@
 - unbounded: cameras surround a centre but much of the content lies beyond them (a room, an outdoor
   360 capture): the mip-NeRF 360 contraction (core.field.contraction). In opaque photos with SfM points a small
   share beyond the cameras is enough (BEYOND_FRACTION_OPAQUE): every pixel shows a surface the field must hold.
+  So is a share of the photos' pixels whose rays miss the box the points fill (MISS_FRACTION): the bounded field
+  has nothing on those rays to learn what they show.
 Without sparse points the dataset's own word decides first (instant-ngp's `aabb_scale`, a nerfstudio scene box:
 loaders/reach.py), then a known far depth, then, for opaque images, a quick probe that triangulates a few image
 pairs with the known poses (core.scene.probe). A loader's or the user's choice overrides it
@@ -14,8 +16,9 @@ pairs with the known poses (core.scene.probe). A loader's or the user's choice o
 from __future__ import annotations
 
 import numpy as np
+import torch
 
-from repaint_nerf.core.scene.normalize import axes_centre
+from repaint_nerf.core.scene.normalize import axes_centre, content_box, fit_box
 from repaint_nerf.core.scene.scene import SCENE_KINDS
 
 FORWARD_MAX_ANGLE = 40.0  # degrees between any camera's view direction and the mean one
@@ -26,6 +29,13 @@ BEYOND_FRACTION = 0.2  # share of points farther from the centre than the camera
 # gained 1.2 dB at 180 s and 9.6 dB at 60 s (the bounded field stayed fog: 94% of its grid occupied). The
 # synthetic bounded layouts have none beyond; this only has to stand above the stray points of SfM's refined tracks.
 BEYOND_FRACTION_OPAQUE = 0.02
+# Share of an opaque capture's training pixels whose rays miss the field cube a bounded fit of its points would give
+# -> unbounded. Those pixels can never be learned (the ray has no sample; training composites it on a random colour):
+# a share s at a squared error e2 caps the PSNR at -10 log10(s e2), 27 dB at 2% and e2 = 0.1 (dark room behind a lit
+# object), about what a capture reaches in 5 minutes here. Found on kermit (bundler's 11 photos of a plush on a chair
+# in a room, 1% of its SfM points beyond the cameras): 11% of its pixels miss the box, 6.8 dB held out bounded.
+MISS_FRACTION = 0.02
+MISS_GRID = 24  # a grid of MISS_GRID x MISS_GRID pixels per view is tested
 FAR_RATIO = 2.0  # without points: farthest depth over the camera distance -> unbounded
 
 
@@ -63,6 +73,25 @@ def kind_from_layout(c2w: np.ndarray, points: np.ndarray | None = None,
     if far_depth is not None and far_depth > FAR_RATIO * r_cam:
         return "unbounded", f"surfaces up to {far_depth / r_cam:.1f}x the camera distance away"
     return "bounded", "cameras surround a centre"
+
+
+def pixels_past_box(cameras, lo, hi, grid: int = MISS_GRID) -> float:
+    """Share of the views' pixels (a `grid` x `grid` sample of each) whose rays miss the world box [lo, hi] ahead
+    of their camera."""
+    from repaint_nerf.core.render.box import intersect_box
+
+    n = len(cameras)
+    if n == 0:
+        return 0.0
+    frac = (torch.arange(grid, dtype=torch.float64) + 0.5) / grid
+    fv, fu = (t.reshape(-1).repeat(n) for t in torch.meshgrid(frac, frac, indexing="ij"))
+    idx = torch.arange(n).repeat_interleave(grid * grid)
+    u = fu * cameras.width.double().cpu()[idx] - 0.5  # `rays` adds the pixel centre's 0.5
+    v = fv * cameras.height.double().cpu()[idx] - 0.5
+    o, d, _ = cameras.to("cpu").rays(idx, u, v)
+    t0, t1 = intersect_box(o.double(), d.double(), torch.as_tensor(lo, dtype=torch.float64),
+                           torch.as_tensor(hi, dtype=torch.float64))
+    return float(((t1 <= t0) | (t1 <= 0)).double().mean())
 
 
 def reach_kind(extra: dict) -> tuple[str, str] | None:
@@ -112,6 +141,15 @@ def detect_kind(scene) -> tuple[str, str]:
     opaque = "train" in scene.splits and _opaque(scene)
     kind, why = kind_from_layout(c2w, scene.points, far, opaque=opaque)
     no_points = scene.points is None or len(scene.points) < 8
+    if kind == "bounded" and opaque and not no_points:
+        rule, lo, hi = content_box(scene, scene.splits["train"].cameras, "bounded")
+        if rule == "points":
+            norm = fit_box(lo, hi)
+            half = 1.0 / norm.scale
+            miss = pixels_past_box(scene.splits["train"].cameras, norm.center - half, norm.center + half)
+            if miss > MISS_FRACTION:
+                return "unbounded", f"{miss:.0%} of the photos' pixels look past the box the sparse points fill"
+            why += f"; {miss:.0%} of the photos' pixels look past the box they fill"
     if kind == "bounded" and no_points and far is None and opaque:
         return probe_kind(scene, c2w) or (kind, why + "; a quick probe of the images found too few points to tell")
     return kind, why

@@ -103,27 +103,32 @@ def _hold_cameras(lo: np.ndarray, hi: np.ndarray, cams: Cameras) -> tuple[np.nda
     return new_lo, new_hi, float(np.max(new_hi - new_lo) / max(float(np.max(hi - lo)), 1e-12))
 
 
-def normalize_scene(scene: Scene) -> Normalization:
-    """Choose and record `scene.norm` (world -> field); fills near/far (world units) when the loader did not."""
-    cams = _all_cameras(scene)
+def content_box(scene: Scene, cams: Cameras, kind: str) -> tuple[str, np.ndarray, np.ndarray]:
+    """(rule, lo, hi): the world box a scene of `kind` fits into the field cube, by the first rule that applies
+    (this module's docstring); an unbounded scene's is then grown to hold its cameras."""
     aabb = scene.extra.get("aabb")
     unit_box = scene.extra.get("unit_box")
     points = scene.points if scene.points is not None and len(scene.points) >= 8 else None
     if unit_box is not None:
-        rule, (lo, hi) = "unit_box", np.asarray(unit_box, dtype=np.float64)
-    elif aabb is not None:
-        rule, (lo, hi) = "aabb", np.asarray(aabb, dtype=np.float64)
-    elif scene.kind == "forward":
+        return ("unit_box", *np.asarray(unit_box, dtype=np.float64))
+    if aabb is not None:
+        return ("aabb", *np.asarray(aabb, dtype=np.float64))
+    if kind == "forward":
         bounds = scene.extra.get("bounds", scene.extra.get("depth_range"))
         near, far = (float(np.min(bounds)), float(np.max(bounds))) if bounds is not None else (scene.near, scene.far)
         if not (0 < near < far < _DEFAULT_FAR):
             near, far = 1.0, 10.0
-        rule, (lo, hi) = "frustum", frustum_box(cams, near, far)
-    elif points is not None and np.max(np.subtract(*robust_box(points)[::-1])) > 0:
-        rule, (lo, hi) = "points", robust_box(points)
-    else:
-        centre, radius = object_sphere(cams)
-        rule, lo, hi = "cameras", centre - radius, centre + radius
+        return ("frustum", *frustum_box(cams, near, far))
+    if points is not None and np.max(np.subtract(*robust_box(points)[::-1])) > 0:
+        return ("points", *robust_box(points))
+    centre, radius = object_sphere(cams)
+    return "cameras", centre - radius, centre + radius
+
+
+def normalize_scene(scene: Scene) -> Normalization:
+    """Choose and record `scene.norm` (world -> field); fills near/far (world units) when the loader did not."""
+    cams = _all_cameras(scene)
+    rule, lo, hi = content_box(scene, cams, scene.kind)
     held = None
     if scene.kind == "unbounded":
         lo, hi, held = _hold_cameras(lo, hi, cams)
