@@ -126,6 +126,31 @@ def test_a_new_workspace_adopts_the_result_beside_the_photos(sfm_run, tmp_path):
     assert again.train.names == scene.train.names
 
 
+def test_a_second_sfm_into_the_workspace_waits_for_the_first_and_reuses_it(sfm_run):
+    """Two structure-from-motion runs into one workspace (the editor and `train` on the same photos) deleted each
+    other's databases. The second now waits on the workspace's lock, says so, and then reuses the first's result."""
+    import threading
+
+    from filelock import FileLock
+
+    from repaint_nerf.core.sfm.run import run_sfm
+
+    ws = sfm_run["root"] / "ws"
+    said, out = [], {}
+    first = FileLock(str(ws / "sfm.lock"))  # the first run, still going
+    first.acquire()
+    try:
+        second = threading.Thread(target=lambda: out.update(report=run_sfm(
+            sfm_run["photos"], ws, progress=lambda p, f, m: said.append((p, m)))))
+        second.start()
+        second.join(1.5)
+        assert second.is_alive() and said and said[0][0] == "waiting" and str(ws) in said[0][1], said
+    finally:
+        first.release()
+    second.join(30)
+    assert not second.is_alive() and out["report"]["cached"] and said[-1][0] == "cached"
+
+
 def test_cli_writes_the_json_report(sfm_run, capsys):
     from repaint_nerf.app.cli import main
 

@@ -3,7 +3,8 @@
 Phases (each timed and reported): intake (core.sfm.images), features, matching, mapping (the largest
 model kept; photos it could not register listed by name), undistortion. The result is a COLMAP
 folder `WS/sfm/scene/` read back through the COLMAP loader, plus `WS/sfm/report.json`; a second
-open with the same photos and options skips every phase.
+open with the same photos and options skips every phase. One process at a time runs it into a workspace
+(`WS/sfm.lock`): another waits, then reuses the result.
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from filelock import FileLock, Timeout
 
 from repaint_nerf.core.errors import SceneError
 from repaint_nerf.core.scene.loaders.colmap import find_model, load_colmap, read_model
@@ -103,6 +105,31 @@ def run_sfm(photos_dir: str | Path, workspace_dir: str | Path | None = None, pro
     photos_dir = Path(photos_dir)
     workspace_dir = Path(workspace_dir) if workspace_dir is not None else default_workspace(photos_dir)
     intake.photos_folder(photos_dir)  # a missing folder is a SceneError before anything is created
+    lock = _sfm_lock(workspace_dir, progress)
+    try:
+        return _run_sfm_locked(photos_dir, workspace_dir, progress, matcher, max_side, force)
+    finally:
+        lock.release()
+
+
+def _sfm_lock(workspace_dir: Path, progress: Progress | None) -> FileLock:
+    """The lock, held, of structure-from-motion into `workspace_dir`: two at once (the editor and `train` on the
+    same photos, or two benches) deleted each other's databases, and one ended in pycolmap's "file does not
+    exist". A second waits, saying so, then finds the first one's result cached."""
+    from repaint_nerf.core.workspace.workspace import Workspace
+
+    lock = FileLock(str(Workspace.open_or_create(workspace_dir).path("sfm.lock")))
+    try:
+        lock.acquire(timeout=0.5)
+    except Timeout:
+        if progress:
+            progress("waiting", 0.0, f"waiting for another structure-from-motion into {workspace_dir} to finish")
+        lock.acquire()
+    return lock
+
+
+def _run_sfm_locked(photos_dir: Path, workspace_dir: Path, progress: Progress | None, matcher: str, max_side: int,
+                    force: bool) -> dict:
     if not force:
         report, where = cached_report(photos_dir, workspace_dir, matcher, max_side), workspace_dir
         if report is None:
