@@ -379,3 +379,23 @@ def test_a_symlinked_image_folder_inside_the_dataset_loads(tmp_path):
     shutil.copy(src / "transforms_train.json", root / "transforms_train.json")
     (root / "train").symlink_to(src / "train", target_is_directory=True)
     assert len(load_scene(root).train) == 3
+
+
+@pytest.mark.timeout(120)
+def test_a_sound_binary_model_read_slowly_on_a_busy_machine_is_not_called_corrupt(tmp_path, monkeypatch):
+    """The probe's limit is CPU time: a child that waits (here it sleeps past the limit, as a read does behind other
+    jobs on a busy machine) reads the model and the scene loads; one that spins past it is stopped and reported."""
+    import repaint_nerf.core.scene.loaders.colmap as colmap
+    from repaint_nerf.core.scene.loaders.detect import load_scene
+
+    if not colmap._cpu_limits():
+        pytest.skip("no CPU-time limits on this platform (POSIX resource)")
+    monkeypatch.setattr(colmap, "PROBE_TIMEOUT_S", 2.0)
+    root = tmp_path / "colmap"
+    _colmap_scene(root, text=False)
+    monkeypatch.setattr(colmap, "_PROBE", "import time\ntime.sleep(4)\n" + colmap._PROBE)
+    assert len(load_scene(root).train) > 0
+    monkeypatch.setattr(colmap, "_PROBE", colmap._PROBE.replace("pycolmap.Reconstruction().read(sys.argv[1])",
+                                                                "while True:\n    pass"))
+    with pytest.raises(SceneError, match=r"did not finish in \d+ s of CPU time"):
+        load_scene(root)

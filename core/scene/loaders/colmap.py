@@ -6,6 +6,8 @@ become `scene.points`. Registered images sorted by name; every 8th is test.
 """
 from __future__ import annotations
 
+import math
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -42,12 +44,14 @@ def find_model(root: Path) -> Path | None:
     return None
 
 
-PROBE_TIMEOUT_S = 20.0  # plus 1 s per 10 MB of .bin files
+PROBE_TIMEOUT_S = 20.0  # seconds of CPU time, plus 1 s per 10 MB of .bin files
+PROBE_WALL_FACTOR = 30  # the wall-clock backstop, in probe time limits: a busy machine slows the probe, not its CPU
 _PROBE = """
 import sys
 try:
     import resource
     resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))
+    resource.setrlimit(resource.RLIMIT_CPU, (int(sys.argv[3]), int(sys.argv[3]) + 1))
 except (ImportError, ValueError, OSError):
     pass
 import pycolmap
@@ -56,24 +60,40 @@ pycolmap.Reconstruction().read(sys.argv[1])
 
 
 def probe_binary_model(model: Path) -> None:
-    """Read a binary model once in a child process (time- and memory-limited) before reading it here: on some
-    corrupt .bin files (a count or track length turned huge) pycolmap loops forever or aborts the process."""
+    """Read a binary model once in a child process (memory- and CPU-time-limited) before reading it here: on some
+    corrupt .bin files (a count or track length turned huge) pycolmap loops forever or aborts the process. The limit
+    is CPU time, not wall time: on a busy machine a sound model took over 20 s of wall time to read and was called
+    corrupt."""
     size = sum(f.stat().st_size for f in model.glob("*.bin"))
     if size == 0:
         return
-    timeout = PROBE_TIMEOUT_S + size / 10e6
+    cpu = int(math.ceil(PROBE_TIMEOUT_S + size / 10e6))
     limit = 4 * 1024 ** 3 + 50 * size
+    wall = cpu * (PROBE_WALL_FACTOR if _cpu_limits() else 1)
     hint = "re-export the model (colmap model_converter) or run structure-from-motion again"
+    slow = SceneError(f"reading the COLMAP model did not finish in {cpu} s of CPU time: a .bin file is corrupt",
+                      model, hint=hint)
     try:
-        r = subprocess.run([sys.executable, "-c", _PROBE, str(model), str(limit)], capture_output=True,
-                           timeout=timeout)
+        r = subprocess.run([sys.executable, "-c", _PROBE, str(model), str(limit), str(cpu)], capture_output=True,
+                           timeout=wall)
     except subprocess.TimeoutExpired:
-        raise SceneError(f"reading the COLMAP model did not finish in {timeout:.0f} s: a .bin file is corrupt",
-                         model, hint=hint) from None
+        raise slow from None
+    xcpu = getattr(signal, "SIGXCPU", None)
+    if xcpu is not None and r.returncode == -xcpu:  # the CPU-time limit
+        raise slow
     if r.returncode != 0:
         lines = [ln for ln in r.stderr.decode(errors="replace").splitlines() if ln.strip()]
         why = lines[-1].strip()[:200] if lines else f"exit status {r.returncode}"
         raise SceneError(f"cannot read the COLMAP model: a .bin file is corrupt ({why})", model, hint=hint)
+
+
+def _cpu_limits() -> bool:
+    """Whether a child process's CPU time can be limited here (POSIX `resource`)."""
+    try:
+        import resource  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def photos_beside(model: Path) -> Path | None:
