@@ -77,7 +77,8 @@ def probe_binary_model(model: Path) -> None:
         r = subprocess.run([sys.executable, "-c", _PROBE, str(model), str(limit), str(cpu)], capture_output=True,
                            timeout=wall)
     except subprocess.TimeoutExpired:
-        raise slow from None
+        raise SceneError(f"reading the COLMAP model did not finish in {wall} s: a .bin file is corrupt", model,
+                         hint=hint) from None
     xcpu = getattr(signal, "SIGXCPU", None)
     if xcpu is not None and r.returncode == -xcpu:  # the CPU-time limit
         raise slow
