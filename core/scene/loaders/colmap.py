@@ -50,10 +50,14 @@ _PROBE = """
 import sys
 try:
     import resource
-    resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))
-    resource.setrlimit(resource.RLIMIT_CPU, (int(sys.argv[3]), int(sys.argv[3]) + 1))
-except (ImportError, ValueError, OSError):
-    pass
+except ImportError:
+    resource = None
+mem, cpu = int(sys.argv[2]), int(sys.argv[3])
+for name, soft, hard in (("RLIMIT_AS", mem, mem), ("RLIMIT_CPU", cpu, cpu + 1)):  # SIGXCPU at soft, SIGKILL at hard
+    try:  # each on its own: a system that refuses the memory limit (macOS) still gets the CPU-time one
+        resource.setrlimit(getattr(resource, name), (soft, hard))
+    except (AttributeError, ValueError, OSError):
+        pass
 import pycolmap
 pycolmap.Reconstruction().read(sys.argv[1])
 """
@@ -71,8 +75,6 @@ def probe_binary_model(model: Path) -> None:
     limit = 4 * 1024 ** 3 + 50 * size
     wall = cpu * (PROBE_WALL_FACTOR if _cpu_limits() else 1)
     hint = "re-export the model (colmap model_converter) or run structure-from-motion again"
-    slow = SceneError(f"reading the COLMAP model did not finish in {cpu} s of CPU time: a .bin file is corrupt",
-                      model, hint=hint)
     try:
         r = subprocess.run([sys.executable, "-c", _PROBE, str(model), str(limit), str(cpu)], capture_output=True,
                            timeout=wall)
@@ -81,7 +83,8 @@ def probe_binary_model(model: Path) -> None:
                          hint=hint) from None
     xcpu = getattr(signal, "SIGXCPU", None)
     if xcpu is not None and r.returncode == -xcpu:  # the CPU-time limit
-        raise slow
+        raise SceneError(f"reading the COLMAP model did not finish in {cpu} s of CPU time: a .bin file is corrupt",
+                         model, hint=hint)
     if r.returncode != 0:
         lines = [ln for ln in r.stderr.decode(errors="replace").splitlines() if ln.strip()]
         why = lines[-1].strip()[:200] if lines else f"exit status {r.returncode}"
