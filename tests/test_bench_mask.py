@@ -45,6 +45,9 @@ def test_bench_mask_figures_and_the_editors_way():
                           "auto_threshold_ms": 0.5})
     assert f"editor's way {ed['iou']:.3f}" in text and f"training views {res['train_iou']:.3f}" in text
     assert res["select_seconds"] > 0 and res["select_views"] == len(train) and " s select (" in text
+    lv = res["edge_level"]
+    assert lv["views"] == len(test) + len(train) and 0 <= lv["raised"] <= lv["views"] and lv["max"] >= lv["median"]
+    assert f"edge level raised in {lv['raised']} of {lv['views']} views" in text
 
 
 def test_bench_mask_seeds_run_each_scene_per_seed_and_report_the_worst(tmp_path):

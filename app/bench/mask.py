@@ -129,6 +129,7 @@ def line(name: str, res: dict) -> str:
             f"best {f['best_iou']:.3f}@{f['best_threshold']:.2f} | no geometry {f['no_geometry']['iou']:.3f} "
             f"(best {f['no_geometry']['best_iou']:.3f}) | before {f['iou_before']:.3f} | {parts} | "
             f"editor's way {f['editor']['iou']:.3f} (no geometry {f['editor']['iou_no_geometry']:.3f}) | "
+            f"edge level raised in {f['edge_level']['raised']} of {f['edge_level']['views']} views | "
             f"step {res['curve'][-1]['step']} ({res['curve'][-1]['seconds']:.0f} s), "
             f"{res['patch_to_mask_ms']:.1f} ms patch->mask ({res['auto_threshold_ms']:.1f} auto), "
             f"{f['select_seconds']:.1f} s select ({f['select_views']} views)")

@@ -240,6 +240,18 @@ def default_parts(ev: Evaluator):
                      [m.opacity.numpy() for m in maps])
 
 
+def edge_levels(ev: Evaluator) -> dict:
+    """The depth-edge level of every view's maps, test and training views as `select` shapes them
+    (geometry.edge_level): how many views' depth was rough enough to raise it above DEPTH_EDGE, and by how much."""
+    from repaint_nerf.core.select.geometry import DEPTH_EDGE, edge_level
+
+    maps = [ev.test_mask_maps(i) for i in range(len(ev.test))] + \
+        [ev.train_cache.mask_maps(i, held=False) for i in range(len(ev.train_cams))]
+    levels = [edge_level(m.depth.numpy(), m.opacity.numpy()) for m in maps]
+    return {"views": len(levels), "raised": int(sum(v > DEPTH_EDGE for v in levels)),
+            "median": float(np.median(levels)) if levels else None, "max": max(levels, default=None)}
+
+
 def editor_iou(ev: Evaluator, gts: list[np.ndarray]) -> dict:
     """IoU of the editor's way (`Evaluator.editor_masks`) with the patch in the test view where the object is
     seen largest, before (no geometry: the editor had no training-view seed) and with the default parts."""
@@ -285,6 +297,7 @@ def evaluate(ev: Evaluator, patch, gts: list[np.ndarray], train_gts: list[np.nda
                             "best_threshold": best_plain,
                             "iou_by_threshold": {f"{t:.2f}": plain_t[t] for t in THRESHOLDS}},
             "parts": parts, "default_parts": variants["default"].names(), "editor": editor_iou(ev, gts),
+            "edge_level": edge_levels(ev),
             "iou_before": iou(before[FIXED], gts), "masks": full[auto],
             "select_seconds": ev.select_seconds(patch, auto, variants["default"]), "select_views": len(ev.train_cams),
             "train_iou": None if train_gts is None else iou(both[auto][1], train_gts)}

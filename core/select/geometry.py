@@ -4,10 +4,10 @@ become barriers, and a view's mask is the part of `similarity > threshold` conne
 without crossing one; views then vote on each other's pixels through their surface points.
 
 A barrier pixel is the far side of a depth edge: its inverse depth is below what its neighbours on a
-line predict by more than `DEPTH_EDGE` of its own value. Inverse depth is affine in pixel coordinates
-on any plane, so a table seen at a grazing angle has no edge however fast its depth grows; only the
-background side is marked, so the object keeps its silhouette pixels. Pixels without a surface
-(opacity below 0.5) are barriers too.
+line predict by more than `DEPTH_EDGE` of its own value (more in a view whose depth is rough: `edge_level`).
+Inverse depth is affine in pixel coordinates on any plane, so a table seen at a grazing angle has no edge however
+fast its depth grows; only the background side is marked, so the object keeps its silhouette pixels. Pixels without
+a surface (opacity below 0.5) are barriers too.
 
 A loaf resting on a board has no depth edge where they meet, but the surface bends there the other way
 from any convex object: a concave crease. As in locally convex connected patches (LCCP, Stein et al.
@@ -39,6 +39,14 @@ CREASE = 0.25  # normals turning towards each other by ~15 degrees or more (2 si
 CONTINUOUS = 0.05  # inverse depth changing under 5% a pixel: one surface (a floor at a grazing angle ~1%)
 CREASE_MIN = 2.0  # a crease component must span twice the band's width: a contact line is a line, not a speck
 CREASE_STEP = 2  # pixels each side: the band is ~2 * CREASE_STEP + 1 wide, wide enough to have no diagonal gap
+EDGE_LINES = 10.0  # a view's true depth edges are outlines, one pixel wide: as many pixels as about this many lines
+# across the view (sqrt of its surface pixels), so their share falls as the view grows. Ground-truth depth of the
+# presets at 128 px reaches 6.1% (toys, 7.8 lines); kermit's rough field flagged 9-28% of its 256-px views at
+# DEPTH_EDGE, and its masks came out whole at a 5% share (4.5% at 10 lines), walled in again at 8%
+ROUGH_LEVEL = 3.5  # the level rises only where the budget needs this many times DEPTH_EDGE: a cluttered scene's many
+# weak steps are true edges between objects (trained 128-px presets: 1.35x median, toys, and 2.2x at most, occluded;
+# raising toys' level lost 0.17 IoU; captures fox 2.9x and snowmiku 2.5x at most), a rough field's bumps are strong
+# (kermit's 9 views: 4.2-10x)
 NOISE_LINES = 256  # depth_noise reads at most about this many rows and columns (every k-th of a larger map)
 ATTACH_ROUNDS = 8  # border pixels `attach` adds at most, one ring a round. Five trained 128-px presets (600 steps)
 # gained from 1 to 6 rounds (toys 0.633 -> 0.728 -> 0.773), held from 8 to 12 and bread lost 0.007 at 20
@@ -76,13 +84,57 @@ def inverse_depth(depth: np.ndarray, opacity: np.ndarray | None = None) -> tuple
     return np.where(surface, np.float32(1.0) / np.maximum(z, np.float32(1e-9)), np.float32(0.0)), surface
 
 
-def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float = DEPTH_EDGE) -> np.ndarray:
+def edge_level(depth: np.ndarray, opacity: np.ndarray | None = None, budget: float | None = None) -> float:
+    """The relative inverse-depth jump that makes a depth edge in this view: `DEPTH_EDGE`, raised until at most
+    `budget` of the surface pixels are edges (default: `EDGE_LINES` lines' worth, `edge_budget`). True edges are
+    outlines; where a rough field's depth flags more, its bumps wall every region into specks (kermit, 9 photos:
+    its default mask kept 1.3% of the pixels, a piece of the plush's torso). A level under `ROUGH_LEVEL` x
+    `DEPTH_EDGE` stays `DEPTH_EDGE`: such weak steps are a cluttered scene's true edges. A pixel's strength is the
+    largest level at which `depth_edges` marks it, along its row or its column; maps over `NOISE_LINES` px read a
+    grid of every k-th pixel (and only those pixels' neighbours: the patch's anchors read a full-resolution view's
+    level)."""
+    z = np.asarray(depth)
+    o = None if opacity is None else np.asarray(opacity)
+    h, wd = z.shape
+    if h < 3 or wd < 3:
+        return DEPTH_EDGE
+    k = max(1, int(np.ceil(max(h, wd) / float(NOISE_LINES))))
+    rows, cols = slice(1, h - 1, k), slice(1, wd - 1, k)
+
+    def inv(r: slice, c: slice) -> tuple[np.ndarray, np.ndarray]:
+        return inverse_depth(z[r, c], None if o is None else o[r, c])
+
+    p, surface = inv(rows, cols)
+    strength = np.full(p.shape, -np.inf, np.float32)
+    for (r0, c0), (r1, c1) in (((slice(0, h - 2, k), cols), (slice(2, h, k), cols)),
+                               ((rows, slice(0, wd - 2, k)), (rows, slice(2, wd, k)))):
+        lo, hi = inv(r0, c0)[0], inv(r1, c1)[0]
+        strength = np.maximum(strength, np.minimum(hi + lo - 2 * p, 2 * (np.maximum(hi, lo) - p)))
+    s = (strength / np.maximum(p, np.float32(1e-12)))[surface]
+    if budget is None:
+        budget = edge_budget(surface.mean() * h * wd if surface.size else 0.0)
+    n = int(np.floor(budget * s.size))
+    if not s.size or n >= s.size:
+        return DEPTH_EDGE
+    level = float(np.partition(s, s.size - 1 - n)[s.size - 1 - n])
+    return level if level >= ROUGH_LEVEL * DEPTH_EDGE else DEPTH_EDGE
+
+
+def edge_budget(surface_pixels: float) -> float:
+    """The share of a view's `surface_pixels` its outlines may take: `EDGE_LINES` lines across a square of that
+    area (10% of a 128x128 view, 3.9% of 256x256, 2% of 512x512)."""
+    return EDGE_LINES / max(float(np.sqrt(max(surface_pixels, 1.0))), 1.0)
+
+
+def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float | None = None) -> np.ndarray:
     """Barrier pixels (bool (H, W)) of a z-depth map: far sides of depth discontinuities, and no surface.
     A pixel p is an edge where, along a row or a column, a neighbour is nearer than the line through p and the
     other neighbour predicts (the second difference over `rel` x w(p)) and nearer than p itself by half that (a
     step, not a bend). The border lines have no neighbour on one side and are never edges along that axis.
-    (On depth rougher than `rel` itself every pixel looks like an edge: see `fit_parts`.)"""
+    `rel` defaults to the view's `edge_level`. (On depth rougher than `DEPTH_EDGE` itself the 2D parts are off:
+    see `fit_parts`.)"""
     w, surface = inverse_depth(depth, opacity)
+    rel = edge_level(depth, opacity) if rel is None else rel
     edge = np.zeros(w.shape, bool)
     for axis in (0, 1):
         p, lo, hi = _neighbours(w, axis)
@@ -96,14 +148,16 @@ def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float
 
 
 def depth_edges_within(where: np.ndarray, depth: np.ndarray, opacity: np.ndarray | None = None) -> np.ndarray:
-    """`depth_edges` on the pixels `where` (bool (H, W)), False elsewhere: evaluated on their bounding box and a
-    1-px margin, since an edge pixel depends on its 4 neighbours only (a patch's anchors need a fraction of a
-    full-resolution view: 12 ms of a 32-ms patch on the fox capture's 781-px view)."""
+    """`depth_edges` on the pixels `where` (bool (H, W)), False elsewhere, at the whole view's `edge_level`:
+    evaluated on their bounding box and a 1-px margin, since an edge pixel depends on its 4 neighbours only (a
+    patch's anchors need a fraction of a full-resolution view: 12 ms of a 32-ms patch on the fox capture's 781-px
+    view)."""
     out = np.zeros(np.shape(depth), bool)
     ys, xs = np.nonzero(where)
     if len(ys):
         box = (slice(max(ys.min() - 1, 0), ys.max() + 2), slice(max(xs.min() - 1, 0), xs.max() + 2))
-        out[box] = depth_edges(np.asarray(depth)[box], None if opacity is None else np.asarray(opacity)[box])
+        out[box] = depth_edges(np.asarray(depth)[box], None if opacity is None else np.asarray(opacity)[box],
+                               edge_level(depth, opacity))
     return out & where
 
 
