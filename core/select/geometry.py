@@ -90,29 +90,30 @@ def edge_level(depth: np.ndarray, opacity: np.ndarray | None = None, budget: flo
     outlines; where a rough field's depth flags more, its bumps wall every region into specks (kermit, 9 photos:
     its default mask kept 1.3% of the pixels, a piece of the plush's torso). A level under `ROUGH_LEVEL` x
     `DEPTH_EDGE` stays `DEPTH_EDGE`: such weak steps are a cluttered scene's true edges. A pixel's strength is the
-    largest level at which `depth_edges` marks it, along its row or its column; maps over `NOISE_LINES` px read a
-    grid of every k-th pixel (and only those pixels' neighbours: the patch's anchors read a full-resolution view's
-    level)."""
+    largest level at which `depth_edges` marks it, along its row or its column. A map over `NOISE_LINES` px is read
+    at that scale, as its every k-th pixel with its k-th neighbours: a field resolves a bump's step over more pixels
+    of a larger render, so steps read pixel to pixel shrink as the view grows (kermit's view 0 read 3.9x at 512 px
+    and 3.3x at the editor's 878 px, under `ROUGH_LEVEL`, and its patch was walled in again)."""
     z = np.asarray(depth)
     o = None if opacity is None else np.asarray(opacity)
     h, wd = z.shape
-    if h < 3 or wd < 3:
-        return DEPTH_EDGE
     k = max(1, int(np.ceil(max(h, wd) / float(NOISE_LINES))))
-    rows, cols = slice(1, h - 1, k), slice(1, wd - 1, k)
+    if h < 2 * k + 1 or wd < 2 * k + 1:
+        return DEPTH_EDGE
+    rows, cols = slice(k, h - k, k), slice(k, wd - k, k)
 
     def inv(r: slice, c: slice) -> tuple[np.ndarray, np.ndarray]:
         return inverse_depth(z[r, c], None if o is None else o[r, c])
 
     p, surface = inv(rows, cols)
     strength = np.full(p.shape, -np.inf, np.float32)
-    for (r0, c0), (r1, c1) in (((slice(0, h - 2, k), cols), (slice(2, h, k), cols)),
-                               ((rows, slice(0, wd - 2, k)), (rows, slice(2, wd, k)))):
+    for (r0, c0), (r1, c1) in (((slice(0, h - 2 * k, k), cols), (slice(2 * k, h, k), cols)),
+                               ((rows, slice(0, wd - 2 * k, k)), (rows, slice(2 * k, wd, k)))):
         lo, hi = inv(r0, c0)[0], inv(r1, c1)[0]
         strength = np.maximum(strength, np.minimum(hi + lo - 2 * p, 2 * (np.maximum(hi, lo) - p)))
     s = (strength / np.maximum(p, np.float32(1e-12)))[surface]
     if budget is None:
-        budget = edge_budget(surface.mean() * h * wd if surface.size else 0.0)
+        budget = edge_budget(surface.mean() * h * wd / (k * k) if surface.size else 0.0)
     n = int(np.floor(budget * s.size))
     if not s.size or n >= s.size:
         return DEPTH_EDGE
