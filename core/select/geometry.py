@@ -45,7 +45,7 @@ EDGE_LINES = 10.0  # a view's true depth edges are outlines, one pixel wide: as 
 # DEPTH_EDGE, and its masks came out whole at a 5% share (4.5% at 10 lines), walled in again at 8%
 ROUGH_LEVEL = 3.5  # the level rises only where the budget needs this many times DEPTH_EDGE: a cluttered scene's many
 # weak steps are true edges between objects (trained 128-px presets: 1.35x median, toys, and 2.2x at most, occluded;
-# raising toys' level lost 0.17 IoU; captures fox 2.9x and snowmiku 2.5x at most), a rough field's bumps are strong
+# raising toys' level lost 0.17 IoU; captures fox 2.9x and snowmiku 2.7x at most), a rough field's bumps are strong
 # (kermit's 9 views: 4.2-10x)
 NOISE_LINES = 256  # depth_noise reads at most about this many rows and columns (every k-th of a larger map)
 ATTACH_ROUNDS = 8  # border pixels `attach` adds at most, one ring a round. Five trained 128-px presets (600 steps)
