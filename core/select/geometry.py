@@ -47,7 +47,7 @@ ROUGH_LEVEL = 3.5  # the level rises only where the budget needs this many times
 # weak steps are true edges between objects (trained 128-px presets: 1.35x median, toys, and 2.2x at most, occluded;
 # raising toys' level lost 0.17 IoU; captures fox 2.9x and snowmiku 2.7x at most), a rough field's bumps are strong
 # (kermit's 9 views: 4.2-10x)
-NOISE_LINES = 256  # depth_noise reads at most about this many rows and columns (every k-th of a larger map)
+NOISE_LINES = 256  # depth_noise and edge_level read about this many rows and columns at most (every k-th pixel)
 ATTACH_ROUNDS = 8  # border pixels `attach` adds at most, one ring a round. Five trained 128-px presets (600 steps)
 # gained from 1 to 6 rounds (toys 0.633 -> 0.728 -> 0.773), held from 8 to 12 and bread lost 0.007 at 20
 
@@ -94,22 +94,14 @@ def edge_level(depth: np.ndarray, opacity: np.ndarray | None = None, budget: flo
     at that scale, as its every k-th pixel with its k-th neighbours: a field resolves a bump's step over more pixels
     of a larger render, so steps read pixel to pixel shrink as the view grows (kermit's view 0 read 3.9x at 512 px
     and 3.3x at the editor's 878 px, under `ROUGH_LEVEL`, and its patch was walled in again)."""
-    z = np.asarray(depth)
-    o = None if opacity is None else np.asarray(opacity)
-    h, wd = z.shape
+    h, wd = np.shape(depth)
     k = max(1, int(np.ceil(max(h, wd) / float(NOISE_LINES))))
-    if h < 2 * k + 1 or wd < 2 * k + 1:
+    w, surface = inverse_depth(np.asarray(depth)[::k, ::k], None if opacity is None else np.asarray(opacity)[::k, ::k])
+    if min(w.shape) < 3:
         return DEPTH_EDGE
-    rows, cols = slice(k, h - k, k), slice(k, wd - k, k)
-
-    def inv(r: slice, c: slice) -> tuple[np.ndarray, np.ndarray]:
-        return inverse_depth(z[r, c], None if o is None else o[r, c])
-
-    p, surface = inv(rows, cols)
+    p, surface = w[1:-1, 1:-1], surface[1:-1, 1:-1]  # the interior: pixels with both neighbours on both axes
     strength = np.full(p.shape, -np.inf, np.float32)
-    for (r0, c0), (r1, c1) in (((slice(0, h - 2 * k, k), cols), (slice(2 * k, h, k), cols)),
-                               ((rows, slice(0, wd - 2 * k, k)), (rows, slice(2 * k, wd, k)))):
-        lo, hi = inv(r0, c0)[0], inv(r1, c1)[0]
+    for lo, hi in ((w[:-2, 1:-1], w[2:, 1:-1]), (w[1:-1, :-2], w[1:-1, 2:])):
         strength = np.maximum(strength, np.minimum(hi + lo - 2 * p, 2 * (np.maximum(hi, lo) - p)))
     s = (strength / np.maximum(p, np.float32(1e-12)))[surface]
     if budget is None:
