@@ -76,6 +76,13 @@ def _neighbours(a: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray, np.nd
     return a[:, 1:-1], a[:, :-2], a[:, 2:]
 
 
+def _step(p: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """A depth step's strength at interior pixels `p` along one line (inverse depth): the second difference, capped
+    at twice the rise to the nearer neighbour (a step, not a bend). One rule for both readers: `depth_edges` marks p
+    where it exceeds `rel` x w(p); `edge_level` reads each pixel's largest such `rel` from it."""
+    return np.minimum(hi + lo - 2 * p, 2 * (np.maximum(hi, lo) - p))
+
+
 def inverse_depth(depth: np.ndarray, opacity: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(inverse depth w (H, W) float32, 0 off the surface; surface (H, W) bool: opaque pixels with a depth).
     float32: the edges and the noise compare second differences with 1% of w, far above its rounding."""
@@ -102,7 +109,7 @@ def edge_level(depth: np.ndarray, opacity: np.ndarray | None = None, budget: flo
     p, surface = w[1:-1, 1:-1], surface[1:-1, 1:-1]  # the interior: pixels with both neighbours on both axes
     strength = np.full(p.shape, -np.inf, np.float32)
     for lo, hi in ((w[:-2, 1:-1], w[2:, 1:-1]), (w[1:-1, :-2], w[1:-1, 2:])):
-        strength = np.maximum(strength, np.minimum(hi + lo - 2 * p, 2 * (np.maximum(hi, lo) - p)))
+        strength = np.maximum(strength, _step(p, lo, hi))
     s = (strength / np.maximum(p, np.float32(1e-12)))[surface]
     if budget is None:
         budget = edge_budget(surface.mean() * h * wd / (k * k) if surface.size else 0.0)
@@ -131,8 +138,7 @@ def depth_edges(depth: np.ndarray, opacity: np.ndarray | None = None, rel: float
     edge = np.zeros(w.shape, bool)
     for axis in (0, 1):
         p, lo, hi = _neighbours(w, axis)
-        thr = rel * p
-        e = (hi + lo - 2 * p > thr) & (np.maximum(hi, lo) - p > thr / 2)
+        e = _step(p, lo, hi) > rel * p
         if axis == 0:
             edge[1:-1, :] |= e
         else:
